@@ -1,0 +1,186 @@
+"""Gymnasium shells around a :class:`~pimbrl.envs.task.Task`: a single env and a native vector env.
+
+Both hold float64 physical states and step them through the task's batched ``advance``; the vector env
+steps all sub-environments in one call, with no Python loop over environments.
+
+Common behaviour (SPEC section 1, "Common to all"):
+
+* ``reset(seed=..., options={"initial_state": u})`` starts from a given physical state;
+* actions outside the box are clipped; NaN/inf actions raise ``ValueError`` with a clear message;
+* a state that blows up ends the episode with ``terminated=True``, the task's finite
+  ``divergence_penalty`` as reward and ``info["diverged"] = True``; the observation returned is the
+  last finite one, so no NaN ever reaches a replay buffer;
+* the time limit truncates (``truncated=True``, never ``terminated``): for the single env through
+  Gymnasium's ``TimeLimit`` wrapper that ``gymnasium.make`` adds, for the vector env internally.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from .task import Task
+
+__all__ = ["PhysicsEnv", "PhysicsVectorEnv"]
+
+
+class PhysicsEnv(gym.Env):
+    """Single-environment shell; subclasses set :attr:`task_class` and document the task."""
+
+    task_class: ClassVar[type[Task]]
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+
+    def __init__(self, render_mode: str | None = None, **task_kwargs: Any) -> None:
+        if render_mode is not None:
+            raise ValueError(
+                f"render_mode={render_mode!r} is not supported; use `pimbrl simulate` or pimbrl.plotting for figures"
+            )
+        self.task = self.task_class(**task_kwargs)
+        self.physics = self.task.physics
+        self.observation_space = self.task.observation_space
+        self.action_space = self.task.action_space
+        self.render_mode = None
+        self._u: np.ndarray | None = None  # (1, state_dim) float64
+        self._k = np.zeros(1, dtype=np.int64)
+
+    @property
+    def state(self) -> np.ndarray:
+        """The current physical state (a copy)."""
+        if self._u is None:
+            raise RuntimeError("call reset() before reading the state")
+        return self._u[0].copy()
+
+    @property
+    def elapsed_steps(self) -> int:
+        """Control steps taken since the last reset."""
+        return int(self._k[0])
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        options = options or {}
+        if options.get("initial_state") is not None:
+            self._u = self.task.check_initial_state(options["initial_state"])[None].copy()
+        else:
+            self._u = self.task.sample_initial_states(self.np_random, 1)
+        self._k = np.zeros(1, dtype=np.int64)
+        return self.task.observe(self._u, self._k)[0], {"diverged": False}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._u is None:
+            raise RuntimeError("call reset() before step()")
+        a = self.task.physical_action(action, 1)
+        out = self.task.advance(self._u, self._k, a)
+        self._u = out.state
+        self._k = self._k + 1
+        obs = self.task.observe(self._u, self._k)[0]
+        return obs, float(out.reward[0]), bool(out.terminated[0]), False, {"diverged": bool(out.diverged[0])}
+
+
+class PhysicsVectorEnv(VectorEnv):
+    """Native vector-environment shell: all sub-environments advance in one batched call.
+
+    Args:
+        num_envs: number of sub-environments.
+        max_episode_steps: time limit (``truncated=True``); defaults to the task's episode length.
+        autoreset_mode: Gymnasium's ``AutoresetMode`` (or its value): ``NEXT_STEP`` (default, as
+            Gymnasium's own vector envs), ``SAME_STEP`` (the final observation is in
+            ``info["final_obs"]``) or ``DISABLED`` (reset with ``options={"reset_mask": mask}``).
+        **task_kwargs: passed to the task.
+    """
+
+    task_class: ClassVar[type[Task]]
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": [], "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        max_episode_steps: int | None = None,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        render_mode: str | None = None,
+        **task_kwargs: Any,
+    ) -> None:
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if render_mode is not None:
+            raise ValueError(f"render_mode={render_mode!r} is not supported by pimbrl's vector envs")
+        self.task = self.task_class(**task_kwargs)
+        self.physics = self.task.physics
+        self.num_envs = int(num_envs)
+        self.max_episode_steps = int(max_episode_steps or self.task.max_episode_steps)
+        if self.max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
+        self.render_mode = None
+        self.single_observation_space = self.task.observation_space
+        self.single_action_space = self.task.action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._u = np.zeros((self.num_envs, self.task.state_dim))
+        self._k = np.zeros(self.num_envs, dtype=np.int64)
+        self._needs_reset = np.zeros(self.num_envs, dtype=bool)
+        self._has_reset = False
+
+    @property
+    def states(self) -> np.ndarray:
+        """Current physical states ``(num_envs, state_dim)`` (a copy)."""
+        return self._u.copy()
+
+    def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        if isinstance(seed, list):
+            seed = seed[0] if seed else None
+        super().reset(seed=seed)
+        options = options or {}
+        mask = np.asarray(options.get("reset_mask", np.ones(self.num_envs, dtype=bool)), dtype=bool)
+        if mask.shape != (self.num_envs,):
+            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
+        init = options.get("initial_state")
+        if init is not None:
+            init = np.asarray(init, dtype=np.float64)
+            if init.shape == (self.task.state_dim,):
+                init = np.broadcast_to(init, (self.num_envs, self.task.state_dim))
+            if init.shape != (self.num_envs, self.task.state_dim):
+                raise ValueError(
+                    f"options['initial_state'] must have shape ({self.task.state_dim},) or "
+                    f"({self.num_envs}, {self.task.state_dim}), got {init.shape}"
+                )
+            new = np.stack([self.task.check_initial_state(s) for s in init[mask]]) if mask.any() else init[mask]
+        else:
+            new = self.task.sample_initial_states(self.np_random, int(mask.sum()))
+        self._u[mask] = new
+        self._k[mask] = 0
+        self._needs_reset[mask] = False
+        self._has_reset = True
+        return self.task.observe(self._u, self._k), {}
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        if not self._has_reset:
+            raise RuntimeError("call reset() before step()")
+        a = self.task.physical_action(actions, self.num_envs)
+        out = self.task.advance(self._u, self._k, a)
+        resetting = self._needs_reset if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(self.num_envs, dtype=bool)
+        stepped = ~resetting
+        self._u[stepped] = out.state[stepped]
+        self._k[stepped] += 1
+        reward = np.where(stepped, out.reward, 0.0)
+        terminated = out.terminated & stepped
+        truncated = (self._k >= self.max_episode_steps) & stepped & ~terminated
+        diverged = out.diverged & stepped
+        if resetting.any():
+            self._u[resetting] = self.task.sample_initial_states(self.np_random, int(resetting.sum()))
+            self._k[resetting] = 0
+        done = terminated | truncated
+        infos: dict[str, Any] = {"diverged": diverged, "_diverged": np.ones(self.num_envs, dtype=bool)}
+        obs = self.task.observe(self._u, self._k)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP and done.any():
+            infos["final_obs"] = np.where(done[:, None], obs, 0).astype(obs.dtype)
+            infos["_final_obs"] = done.copy()
+            self._u[done] = self.task.sample_initial_states(self.np_random, int(done.sum()))
+            self._k[done] = 0
+            obs = self.task.observe(self._u, self._k)
+        self._needs_reset = done if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(self.num_envs, dtype=bool)
+        return obs, reward, terminated, truncated, infos

@@ -1,0 +1,96 @@
+"""Cart-Pole balancing (Gymnasium's CartPole dynamics, the paper's CartPole-v0 settings)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from ..physics import CartPole
+from .base import PhysicsEnv, PhysicsVectorEnv
+from .task import Task
+
+__all__ = ["CartPoleTask", "CartPoleEnv", "CartPoleVectorEnv"]
+
+
+class CartPoleTask(Task):
+    """Cart-Pole task: Discrete(2) actions (0: push left, 1: push right), 200 control steps."""
+
+    max_episode_steps = 200
+
+    def __init__(self) -> None:
+        self.physics = CartPole()
+        p = self.physics
+        high = np.array([p.x_threshold * 2, np.inf, p.theta_threshold_radians * 2, np.inf], dtype=np.float32)
+        self.observation_space = spaces.Box(-high, high, dtype=np.float32)
+        self.action_space = spaces.Discrete(2)
+
+    def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        return rng.uniform(low=-0.05, high=0.05, size=(n, 4))
+
+    def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return u.astype(np.float32)
+
+    def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        arr = np.asarray(actions)
+        if arr.ndim == 0 and batch == 1:
+            arr = arr[None]
+        if arr.shape != (batch,):
+            raise ValueError(f"Cart-Pole expects {'one discrete action' if batch == 1 else f'{batch} discrete actions'} in {{0, 1}}, got shape {arr.shape}")
+        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+            raise ValueError("action contains NaN or inf; Cart-Pole expects integers 0 (left) or 1 (right)")
+        if not np.all((arr == 0) | (arr == 1)):
+            raise ValueError(f"Cart-Pole actions must be 0 (push left) or 1 (push right), got {arr.tolist()}")
+        return np.where(arr == 1, self.physics.force_mag, -self.physics.force_mag)[:, None].astype(np.float64)
+
+
+_DOC = f"""Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPole-v0 settings).
+
+    ## Description
+    A pole is hinged on a cart that moves on a frictionless track; pushing the cart left or right
+    keeps the pole upright.
+
+    ## Governing equation
+    Gymnasium's cart-pole equations (g = 9.8, cart mass 1.0, pole mass 0.1, half-length 0.5):
+    ``temp = (F + m_p l theta_dot^2 sin theta) / (m_c + m_p)``,
+    ``theta_acc = (g sin theta - cos theta temp) / (l (4/3 - m_p cos^2 theta / (m_c + m_p)))``,
+    ``x_acc = temp - m_p l theta_acc cos theta / (m_c + m_p)``. (The paper's equation (3.1) has typos.)
+
+    ## Discretisation
+    Explicit Euler, ``tau = 0.02``, in Gymnasium's operation order: trajectories equal Gymnasium's
+    ``CartPole`` bit for bit from the same state and actions.
+
+    ## Action Space
+    ``Discrete(2)``: 0 pushes the cart left (force -10), 1 pushes it right (+10).
+
+    ## Observation Space
+    ``Box(4,)``: ``(x, x_dot, theta, theta_dot)``, bounds as Gymnasium's.
+
+    ## Rewards
+    +1 for every step, the terminating one included.
+
+    ## Starting State
+    All four state variables ``~ U(-0.05, 0.05)``; ``reset(options={{"initial_state": s}})`` with
+    ``s = (x, x_dot, theta, theta_dot)``.
+
+    ## Episode End
+    Termination when ``|x| > 2.4`` or ``|theta| > 12 degrees``; truncation after 200 steps.
+
+    ## Arguments
+    None.
+
+    ## Version History
+    * v0: the paper's CartPole-v0 (200-step limit).
+    """
+
+
+class CartPoleEnv(PhysicsEnv):
+    __doc__ = _DOC
+    task_class = CartPoleTask
+
+
+class CartPoleVectorEnv(PhysicsVectorEnv):
+    __doc__ = _DOC + "\n    Native vector version: all sub-environments advance in one NumPy call.\n"
+    task_class = CartPoleTask

@@ -1,0 +1,172 @@
+"""Initial-state pools for the Kuramoto-Sivashinsky task, taken from chaotic transients.
+
+At L = 8 pi the unforced discretised KS system is chaotic only for a while: after ~40-200 time units most
+runs settle onto a steady state (energy mean(u^2) ~ 2.8, reward ~ -2.3 per step). "Sampled from the
+attractor" therefore means here (SPEC 1.1): snapshots from the chaotic phase of unforced runs.
+
+Generation, fully seeded:
+
+1. start ``runs`` unforced runs from random smooth fields (Fourier modes 1-4 with amplitudes ~ N(0, 1/m^2));
+2. simulate ``max_steps`` control steps; a run is *settled* from the first step at which
+   ``max |du/dt|`` drops below ``settle_rate`` (settled states drift at ~1e-3, chaotic ones at ~0.1-1);
+3. keep snapshots every ``spacing`` control steps after ``burn_in``, as long as the run's uncontrolled
+   continuation stays unsettled for a whole episode plus ``margin`` steps: then every pool state starts
+   a fully chaotic uncontrolled episode, as the authors' states do (their 400-step uncontrolled returns are
+   -234.6 ... -244.7);
+4. at most ``per_run`` snapshots per run; runs are added until the pool is full.
+
+Train and test pools come from disjoint sets of runs (independent seed streams), so no test state is
+ever a training state. Pools are cached under :func:`pimbrl.physics.kernels.cache_dir`, keyed by the
+numerics and every generation parameter, and written atomically. Since the unforced runs *are* the
+uncontrolled episodes, the uncontrolled return of every pool state is recorded for free.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import tempfile
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import numpy as np
+
+from ..physics import KuramotoSivashinsky
+from ..physics.kernels import cache_dir
+
+__all__ = ["KSPoolConfig", "KSPool", "ks_initial_state_pool"]
+
+_POOL_VERSION = 1
+Split = Literal["train", "test"]
+
+
+@dataclass(frozen=True)
+class KSPoolConfig:
+    """Parameters of the pool generator (all in control steps of 0.25 time units unless noted)."""
+
+    n_train: int = 600
+    n_test: int = 200
+    seed: int = 0
+    burn_in: int = 40
+    spacing: int = 20
+    per_run: int = 8
+    max_steps: int = 700
+    episode_steps: int = 400
+    margin: int = 100
+    settle_rate: float = 0.01
+    batch: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("n_train", "n_test", "spacing", "per_run", "max_steps", "episode_steps", "batch"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"KSPoolConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.burn_in + self.episode_steps + self.margin >= self.max_steps:
+            raise ValueError("KSPoolConfig: max_steps must exceed burn_in + episode_steps + margin")
+
+
+@dataclass(frozen=True)
+class KSPool:
+    """A pool of initial states with their uncontrolled episode statistics."""
+
+    states: np.ndarray  # (n, 64) float64
+    uncontrolled_terms: np.ndarray  # (n, 4): sum over one uncontrolled episode of the step-averaged reward integrands
+    run_ids: np.ndarray  # (n,) index of the generating run (within the split)
+
+    def uncontrolled_returns(self, physics: KuramotoSivashinsky) -> np.ndarray:
+        """Return of the uncontrolled (a = 0) episode from each state, under ``physics``' reward."""
+        return physics.reward_from_terms(self.uncontrolled_terms)
+
+
+def _random_smooth_fields(rng: np.random.Generator, n_fields: int, physics: KuramotoSivashinsky) -> np.ndarray:
+    x = physics.x * 2 * np.pi / physics.length
+    u = np.zeros((n_fields, physics.n))
+    for m in range(1, 5):
+        u += rng.normal(0, 1 / m, (n_fields, 1)) * np.cos(m * x) + rng.normal(0, 1 / m, (n_fields, 1)) * np.sin(m * x)
+    return 0.5 * u
+
+
+def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Split, verbose: bool) -> KSPool:
+    n_target = cfg.n_train if split == "train" else cfg.n_test
+    stream = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(0 if split == "train" else 1,)))
+    zeros = np.zeros((cfg.batch, 4))
+    states, terms, runs = [], [], []
+    run0 = 0
+    while sum(len(s) for s in states) < n_target:
+        u = _random_smooth_fields(stream, cfg.batch, physics)
+        traj = np.empty((cfg.max_steps + 1, cfg.batch, physics.n))
+        step_terms = np.empty((cfg.max_steps, cfg.batch, 4))
+        traj[0] = u
+        for k in range(cfg.max_steps):
+            u, step_terms[k] = physics.advance_terms(u, zeros)
+            traj[k + 1] = u
+        rate = np.abs(traj[1:] - traj[:-1]).max(-1) / physics.control_dt  # (T, B)
+        for b in range(cfg.batch):
+            slow = np.nonzero(rate[:, b] < cfg.settle_rate)[0]
+            settle = int(slow[0]) if len(slow) else cfg.max_steps
+            last_start = min(settle, cfg.max_steps) - cfg.episode_steps - cfg.margin
+            starts = np.arange(cfg.burn_in, last_start + 1, cfg.spacing)[: cfg.per_run]
+            if len(starts) == 0:
+                continue
+            cum = np.concatenate([np.zeros((1, 4)), np.cumsum(step_terms[:, b], axis=0)])
+            states.append(traj[starts, b])
+            terms.append(cum[starts + cfg.episode_steps] - cum[starts])
+            runs.append(np.full(len(starts), run0 + b))
+        run0 += cfg.batch
+        if verbose:
+            got = sum(len(s) for s in states)
+            print(f"pimbrl: KS {split} pool: {min(got, n_target)}/{n_target} states from {run0} runs", file=sys.stderr)
+    return KSPool(
+        np.concatenate(states)[:n_target], np.concatenate(terms)[:n_target], np.concatenate(runs)[:n_target]
+    )
+
+
+def _cache_key(physics: KuramotoSivashinsky, cfg: KSPoolConfig) -> str:
+    numerics = {"n": physics.n, "length": physics.length, "dt": physics.dt, "substeps": physics.substeps}
+    blob = json.dumps({"v": _POOL_VERSION, "numerics": numerics, "cfg": asdict(cfg)}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+_MEMO: dict[tuple[str, str], KSPool] = {}
+
+
+def ks_initial_state_pool(
+    split: Split = "train",
+    config: KSPoolConfig | None = None,
+    physics: KuramotoSivashinsky | None = None,
+    verbose: bool = True,
+) -> KSPool:
+    """The KS initial-state pool ``split`` ("train" or "test"), generated once and cached on disk."""
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    cfg = config or KSPoolConfig()
+    phys = physics or KuramotoSivashinsky()
+    key = _cache_key(phys, cfg)
+    if (key, split) in _MEMO:
+        return _MEMO[(key, split)]
+    path = cache_dir() / "ks_pools" / f"ks_pool_{key}_{split}.npz"
+    pool = None
+    if path.exists():
+        try:
+            with np.load(path) as data:
+                pool = KSPool(data["states"], data["uncontrolled_terms"], data["run_ids"])
+        except (OSError, ValueError, KeyError):
+            pool = None  # unreadable cache entry: regenerate it
+    if pool is None:
+        pool = _generate_split(phys, cfg, split, verbose)
+        _save_atomic(path, pool)
+    _MEMO[(key, split)] = pool
+    return pool
+
+
+def _save_atomic(path: os.PathLike, pool: KSPool) -> None:
+    directory = os.path.dirname(path)
+    try:
+        os.makedirs(directory, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=directory, suffix=".npz.tmp")
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, states=pool.states, uncontrolled_terms=pool.uncontrolled_terms, run_ids=pool.run_ids)
+        os.replace(tmp, path)
+    except OSError as exc:  # a read-only cache only costs regeneration next time
+        print(f"pimbrl: could not cache the KS pool at {path}: {exc}", file=sys.stderr)

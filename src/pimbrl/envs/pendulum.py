@@ -1,0 +1,101 @@
+"""Pendulum swing-up (Gymnasium's Pendulum dynamics)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from gymnasium import spaces
+
+from ..physics import Pendulum, wrap_angle
+from .base import PhysicsEnv, PhysicsVectorEnv
+from .task import Task
+
+__all__ = ["PendulumTask", "PendulumEnv", "PendulumVectorEnv"]
+
+
+class PendulumTask(Task):
+    """Pendulum task: torque in ``[-2, 2]``, 200 control steps.
+
+    Args:
+        observation: ``"theta"`` (default, the paper's ``(theta, theta_dot)`` with ``theta`` wrapped into
+            ``[-pi, pi)``) or ``"cos_sin"`` (Gymnasium's ``(cos theta, sin theta, theta_dot)``).
+    """
+
+    max_episode_steps = 200
+
+    def __init__(self, observation: Literal["theta", "cos_sin"] = "theta") -> None:
+        if observation not in ("theta", "cos_sin"):
+            raise ValueError(f"observation must be 'theta' or 'cos_sin', got {observation!r}")
+        self.physics = Pendulum()
+        self.observation_mode = observation
+        s = np.float32(self.physics.max_speed)
+        if observation == "theta":
+            high = np.array([np.pi, s], dtype=np.float32)
+        else:
+            high = np.array([1.0, 1.0, s], dtype=np.float32)
+        self.observation_space = spaces.Box(-high, high, dtype=np.float32)
+        self.action_space = spaces.Box(
+            self.physics.action_low.astype(np.float32), self.physics.action_high.astype(np.float32), dtype=np.float32
+        )
+
+    def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        high = np.array([np.pi, 1.0])
+        return rng.uniform(low=-high, high=high, size=(n, 2))
+
+    def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        theta, theta_dot = u[:, 0], u[:, 1]
+        if self.observation_mode == "theta":
+            return np.stack([wrap_angle(theta), theta_dot], -1).astype(np.float32)
+        return np.stack([np.cos(theta), np.sin(theta), theta_dot], -1).astype(np.float32)
+
+    def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        return self._box_action(actions, batch, self.action_space, self.physics.action_low, self.physics.action_high)
+
+
+_DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
+
+    ## Description
+    A pendulum hinged at one end starts at a random angle; a bounded torque must swing it up and keep
+    it upright with little effort.
+
+    ## Governing equation
+    ``theta_ddot = 3 g / (2 l) sin(theta) + 3 / (m l^2) T`` with ``g = 10``, ``m = l = 1``;
+    ``theta = 0`` is upright.
+
+    ## Discretisation
+    Semi-implicit Euler, ``dt = 0.05``, angular speed clipped to ``[-8, 8]``, in Gymnasium's
+    operation order: trajectories equal Gymnasium's ``Pendulum-v1`` bit for bit.
+
+    ## Action Space
+    ``Box(-2, 2, (1,), float32)``: the torque; values outside are clipped.
+
+    ## Observation Space
+    ``observation="theta"`` (default): ``(theta, theta_dot)`` with ``theta`` wrapped into ``[-pi, pi)``,
+    as the paper observes; ``observation="cos_sin"``: ``(cos theta, sin theta, theta_dot)`` as Gymnasium.
+
+    ## Rewards
+    ``-(wrap(theta)^2 + 0.1 theta_dot^2 + 0.001 T^2)`` on the pre-step state.
+
+    ## Starting State
+    ``theta ~ U(-pi, pi)``, ``theta_dot ~ U(-1, 1)``; ``reset(options={"initial_state": (theta, theta_dot)})``.
+
+    ## Episode End
+    Truncation after 200 steps; never terminates.
+
+    ## Arguments
+    ``observation``: ``"theta"`` or ``"cos_sin"``.
+
+    ## Version History
+    * v0: initial version.
+    """
+
+
+class PendulumEnv(PhysicsEnv):
+    __doc__ = _DOC
+    task_class = PendulumTask
+
+
+class PendulumVectorEnv(PhysicsVectorEnv):
+    __doc__ = _DOC + "\n    Native vector version: all sub-environments advance in one NumPy call.\n"
+    task_class = PendulumTask

@@ -1,0 +1,105 @@
+"""A control task: a :class:`~pimbrl.physics.Physics` plus what an environment adds around it.
+
+The task is batched and stateless: it maps agent actions to physical actions, physical states to
+observations, draws initial states, and advances a batch of states with the physics' fast simulator,
+turning blow-ups into terminations with a finite penalty. Both the single and the vector Gymnasium
+environments are thin shells around one task, so their behaviour cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from ..physics import Physics
+
+__all__ = ["Task", "TransitionBatch"]
+
+
+@dataclass
+class TransitionBatch:
+    """Result of advancing a batch of environments by one control step."""
+
+    state: np.ndarray  # (B, state_dim) float64: next state (the pre-step state where diverged)
+    reward: np.ndarray  # (B,) float64
+    terminated: np.ndarray  # (B,) bool: by the task's rule or by divergence
+    diverged: np.ndarray  # (B,) bool
+
+
+class Task(ABC):
+    """Batched definition of a control task around one physics object.
+
+    Subclasses set :attr:`physics`, :attr:`observation_space`, :attr:`action_space`,
+    :attr:`max_episode_steps` and implement :meth:`sample_initial_states`, :meth:`observe` and
+    :meth:`physical_action`.
+    """
+
+    physics: Physics
+    observation_space: spaces.Space
+    action_space: spaces.Space
+    max_episode_steps: int
+    #: reward given, instead of the physics' reward, on a step that blows up (then the episode ends)
+    divergence_penalty: float = -100.0
+
+    @abstractmethod
+    def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``(n, state_dim)`` float64 physical initial states."""
+
+    @abstractmethod
+    def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """Observations ``(B, obs_dim)`` (float32) of states ``u`` at control steps ``k``."""
+
+    @abstractmethod
+    def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        """Validate a batch of agent actions and map them to clipped physical actions ``(B, action_dim)``.
+
+        Raises ``ValueError`` naming the problem for NaN/inf values, wrong shapes or invalid
+        discrete actions.
+        """
+
+    # ------------------------------------------------------------------ shared behaviour
+    @property
+    def state_dim(self) -> int:
+        return self.physics.state_dim
+
+    def check_initial_state(self, state: Any) -> np.ndarray:
+        """A user-given physical state as a float64 ``(state_dim,)`` array, or a clear ``ValueError``."""
+        arr = np.asarray(state, dtype=np.float64)
+        if arr.shape != (self.state_dim,):
+            raise ValueError(
+                f"options['initial_state'] must be the physical state with shape ({self.state_dim},), got shape {arr.shape}"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise ValueError("options['initial_state'] contains NaN or inf; pass a finite physical state")
+        return arr
+
+    def advance(self, u: np.ndarray, k: np.ndarray, physical_action: np.ndarray) -> TransitionBatch:
+        """One control step for a batch; blown-up environments keep their pre-step state."""
+        u_next, reward = self.physics.advance(u, physical_action, k)
+        reward = np.asarray(reward, dtype=np.float64) + np.zeros(len(u))
+        diverged = self.physics.diverged(u_next) | ~np.isfinite(reward)
+        terminated = np.asarray(self.physics.terminated(u_next), dtype=bool) | diverged
+        if diverged.any():
+            u_next = np.where(diverged[:, None], u, u_next)
+            reward = np.where(diverged, self.divergence_penalty, reward)
+        return TransitionBatch(u_next, reward, terminated, diverged)
+
+    @staticmethod
+    def _box_action(actions: Any, batch: int, space: spaces.Box, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+        """Validate continuous actions of a Box space and clip them into the physical bounds."""
+        arr = np.asarray(actions, dtype=np.float64)
+        shape = space.shape
+        if arr.shape == shape and batch == 1:
+            arr = arr[None]
+        if arr.shape != (batch, *shape):
+            raise ValueError(f"expected actions of shape {(batch, *shape) if batch > 1 else shape}, got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(
+                f"action contains NaN or inf ({arr.tolist() if arr.size <= 8 else 'array'}); "
+                "the policy produced a non-finite value - check the agent's network and inputs"
+            )
+        return np.clip(arr, low, high)

@@ -1,0 +1,133 @@
+"""The :class:`Physics` interface: one object per controlled system that owns its governing equation.
+
+Every consumer of an equation calls the same object:
+
+* the Gymnasium environments call :meth:`Physics.advance` (fast, batched, float64, compiled for PDEs);
+* the physics-informed model loss calls :meth:`Physics.residual` (torch, differentiable);
+* imagined environments call :meth:`Physics.reward` and :meth:`Physics.terminated` on predicted states;
+* plots and tests call :meth:`Physics.step` (the plain reference integrator, NumPy or torch).
+
+The reference methods (``rhs``, ``substep``, ``step``, ``residual``, ``reward``) accept NumPy arrays or
+torch tensors of any floating dtype, batched over leading dimensions; the state is the last axis.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, TypeVar
+
+import numpy as np
+import torch
+
+Array = TypeVar("Array", np.ndarray, torch.Tensor)
+
+__all__ = ["Array", "Physics", "xp_of"]
+
+
+def xp_of(x: Any) -> Any:
+    """The array namespace of ``x``: the ``torch`` module for tensors, else ``numpy``."""
+    return torch if isinstance(x, torch.Tensor) else np
+
+
+class Physics(ABC):
+    """A controlled dynamical system ``du/dt = F(u, a)`` with its discretisation, reward and limits.
+
+    Attributes:
+        name: short identifier.
+        state_dim: length of the physical state vector ``u``.
+        action_dim: number of physical control inputs ``a``.
+        action_low, action_high: bounds of the physical control inputs.
+        dt: the solver's time step.
+        substeps: solver steps per control step (the action is frozen over a control step).
+        divergence_bound: a state with ``|u| > divergence_bound`` anywhere (or any non-finite value)
+            counts as blown up.
+    """
+
+    name: str = "physics"
+    state_dim: int
+    action_dim: int
+    action_low: np.ndarray
+    action_high: np.ndarray
+    dt: float
+    substeps: int
+    divergence_bound: float = np.inf
+
+    @property
+    def control_dt(self) -> float:
+        """Physical time covered by one control step."""
+        return self.dt * self.substeps
+
+    # ------------------------------------------------------------------ the equation
+    @abstractmethod
+    def rhs(self, u: Array, a: Array) -> Array:
+        """Right-hand side ``du/dt`` of the (semi-)discrete equation, batched over leading dimensions."""
+
+    @abstractmethod
+    def substep(self, u: Array, a: Array) -> Array:
+        """One solver step of length :attr:`dt` with the action held fixed (reference implementation)."""
+
+    def step(self, u: Array, a: Array, substeps: int | None = None) -> Array:
+        """``substeps`` solver steps (default: one control step) with the reference integrator."""
+        for _ in range(self.substeps if substeps is None else substeps):
+            u = self.substep(u, a)
+        return u
+
+    def path(self, u: Array, a: Array, substeps: int | None = None) -> Array:
+        """States at the start of each of ``substeps`` solver steps, stacked on axis ``-2`` (``u`` first)."""
+        xp = xp_of(u)
+        states = []
+        for _ in range(self.substeps if substeps is None else substeps):
+            states.append(u)
+            u = self.substep(u, a)
+        return xp.stack(states, -2)
+
+    def state_difference(self, u1: Array, u0: Array) -> Array:
+        """``u1 - u0`` in the state's own geometry (systems with angles override this to wrap them)."""
+        return u1 - u0
+
+    def residual(self, u0: Array, u1: Array, a: Array, substeps: int = 1) -> Array:
+        """Residual of the discrete equation between two states ``substeps`` solver steps apart.
+
+        ``(u1 - step(u0, a, substeps)) / (substeps * dt)``: in units of ``du/dt``, and zero up to
+        round-off when ``u1`` is the solver's own output. Differentiable in ``u0``, ``u1`` and ``a``.
+        """
+        if substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        return self.state_difference(u1, self.step(u0, a, substeps)) / (substeps * self.dt)
+
+    # ------------------------------------------------------------------ the task
+    @abstractmethod
+    def reward(self, u: Array, a: Array, u_next: Array, k: Array | int, path: Array | None = None) -> Array:
+        """Reward of the control step ``u --a--> u_next`` taken at control-step index ``k``.
+
+        ``path`` holds the states at the start of the solver steps of this control step (axis ``-2``),
+        for rewards that integrate over the step; where it is ``None`` the start state alone is used.
+        """
+
+    def terminated(self, u: Array) -> Array:
+        """True where a state ends the episode by the task's own rule (not by blow-up)."""
+        xp = xp_of(u)
+        return xp.zeros(u.shape[:-1], dtype=bool) if xp is np else torch.zeros(u.shape[:-1], dtype=torch.bool, device=u.device)
+
+    def diverged(self, u: Array) -> Array:
+        """True where a state is non-finite or beyond :attr:`divergence_bound`."""
+        xp = xp_of(u)
+        bad = ~xp.isfinite(u) | (xp.abs(u) > self.divergence_bound)
+        return bad.any(-1)
+
+    def clip_action(self, a: np.ndarray) -> np.ndarray:
+        """Clip physical actions into ``[action_low, action_high]``."""
+        return np.clip(a, self.action_low, self.action_high)
+
+    # ------------------------------------------------------------------ the fast simulator
+    @abstractmethod
+    def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One control step for a batch: ``u`` of shape ``(B, state_dim)`` and ``a`` of shape
+        ``(B, action_dim)``, float64, ``k`` the control-step indices ``(B,)``.
+
+        Returns ``(u_next, reward)``; computes in float64 and equals :meth:`step` / :meth:`reward` to
+        round-off. Does not check for blow-up (the environments do).
+        """
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(state_dim={self.state_dim}, action_dim={self.action_dim}, dt={self.dt}, substeps={self.substeps})"

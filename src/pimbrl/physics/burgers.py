@@ -1,0 +1,144 @@
+"""Viscous Burgers equation with two actuators, tracking a moving reference (Liu & Wang 2021, 3.2).
+
+    u_t + (u^2/2)_xi = nu u_xixi + a1 f1(xi) + a2 f2(xi),   xi in [0, 1) periodic, nu = 0.01,
+
+discretised as the authors' code computes it (SPEC section 1.2): 4th-order central diffusion,
+2nd-order backward (upwind for u > 0) convection of ``s = u^2/2``, explicit Euler with dt = 0.001 and
+500 steps per control step (0.5 time units). The paper's dt = 0.01 blows up in the first control step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .base import Array, Physics
+from .kernels import PDEKernelSpec, build_pde_kernel
+from .stencil import Stencil
+
+__all__ = ["Burgers", "BURGERS_D2", "BURGERS_UPWIND"]
+
+#: 4th-order central second difference (raw: divide by dx^2).
+BURGERS_D2 = Stencil.centered((-1 / 12, 4 / 3, -5 / 2, 4 / 3, -1 / 12), "D2")
+#: 2nd-order backward first difference (raw: divide by dx), applied to u^2.
+BURGERS_UPWIND = Stencil((-2, -1, 0), (0.5, -2.0, 1.5), "Db")
+
+
+class Burgers(Physics):
+    """The controlled viscous Burgers system with a sinusoidal reference ``ref_k``.
+
+    Args:
+        n: grid points (150).
+        nu: viscosity (0.01).
+        dt: Euler step (0.001).
+        substeps: Euler steps per control step (500).
+        action_low, action_high: actuator amplitude bounds (-0.025, 0.075).
+        episode_steps: control steps in one period of the reference (60).
+        ref_mean, ref_amplitude: the reference is ``ref_mean + ref_amplitude * sin(2 pi k / episode_steps)``.
+        divergence_bound: ``|u|`` beyond this counts as blown up (10).
+    """
+
+    name = "burgers"
+
+    def __init__(
+        self,
+        n: int = 150,
+        nu: float = 0.01,
+        dt: float = 0.001,
+        substeps: int = 500,
+        action_low: float = -0.025,
+        action_high: float = 0.075,
+        episode_steps: int = 60,
+        ref_mean: float = 0.5,
+        ref_amplitude: float = 0.05,
+        divergence_bound: float = 10.0,
+    ) -> None:
+        if n < 5:
+            raise ValueError(f"Burgers needs at least 5 grid points, got n={n}")
+        if nu < 0 or dt <= 0 or substeps < 1:
+            raise ValueError(f"need nu >= 0, dt > 0, substeps >= 1; got nu={nu}, dt={dt}, substeps={substeps}")
+        self.n = int(n)
+        self.dx = 1.0 / self.n
+        self.nu = float(nu)
+        self.dt = float(dt)
+        self.substeps = int(substeps)
+        self.state_dim = self.n
+        self.action_dim = 2
+        self.action_low = np.full(2, float(action_low))
+        self.action_high = np.full(2, float(action_high))
+        self.episode_steps = int(episode_steps)
+        self.ref_mean = float(ref_mean)
+        self.ref_amplitude = float(ref_amplitude)
+        self.divergence_bound = float(divergence_bound)
+        self.x = np.arange(self.n) * self.dx
+        #: ``(2, n)`` actuator shapes ``exp(-225 (xi - 0.25)^2)`` and ``exp(-225 (xi - 0.75)^2)``
+        self.actuator_shapes = np.exp(-225.0 * (self.x[None, :] - np.array([0.25, 0.75])[:, None]) ** 2)
+        #: the linear operator ``nu D2 / dx^2``
+        self.linear = BURGERS_D2.scaled(self.nu / self.dx**2, "nu*D2/dx^2")
+        #: coefficient of ``Db(u^2)``: ``-(u^2/2)_xi = -Db(u^2) / (2 dx)``
+        self.nonlinear_coef = -1.0 / (2.0 * self.dx)
+        self._kernel: Callable | None = None
+
+    # ------------------------------------------------------------------ equation
+    def forcing(self, a: Array) -> Array:
+        """Forcing field ``a1 f1 + a2 f2`` of shape ``(..., n)`` from actions ``(..., 2)``."""
+        if isinstance(a, torch.Tensor):
+            return a @ torch.as_tensor(self.actuator_shapes, dtype=a.dtype, device=a.device)
+        return a @ self.actuator_shapes
+
+    def rhs_forced(self, u: Array, f: Array) -> Array:
+        """``du/dt`` for a given forcing field."""
+        return self.linear.apply(u) + self.nonlinear_coef * BURGERS_UPWIND.apply(u * u) + f
+
+    def rhs(self, u: Array, a: Array) -> Array:
+        return self.rhs_forced(u, self.forcing(a))
+
+    def substep(self, u: Array, a: Array) -> Array:
+        return u + self.dt * self.rhs(u, a)
+
+    def step(self, u: Array, a: Array, substeps: int | None = None) -> Array:
+        f = self.forcing(a)
+        for _ in range(self.substeps if substeps is None else substeps):
+            u = u + self.dt * self.rhs_forced(u, f)
+        return u
+
+    # ------------------------------------------------------------------ task
+    def reference(self, k: Array | int) -> Array | float:
+        """Reference value at control step ``k``: ``0.5 + 0.05 sin(2 pi k / 60)``."""
+        phase = 2 * np.pi * (k / self.episode_steps)
+        if isinstance(k, torch.Tensor):
+            return self.ref_mean + self.ref_amplitude * torch.sin(phase)
+        return self.ref_mean + self.ref_amplitude * np.sin(phase)
+
+    def observe(self, u: Array, k: Array | int) -> Array:
+        """Observation ``u - ref_k`` (``k`` broadcast over the state axis)."""
+        ref = self.reference(k)
+        if getattr(ref, "ndim", 0) > 0:
+            ref = ref[..., None]
+        return u - ref
+
+    def reward(self, u: Array, a: Array, u_next: Array, k: Array | int, path: Array | None = None) -> Array:
+        """``-10 mean((u_next - ref_{k+1})^2)``: the tracking error after the step."""
+        err = self.observe(u_next, k + 1)
+        return -10.0 * (err * err).mean(-1)
+
+    # ------------------------------------------------------------------ fast simulator
+    def kernel_spec(self) -> PDEKernelSpec:
+        """The compiled kernel's operators: exactly this object's stencils and explicit Euler."""
+        return PDEKernelSpec(
+            linear=self.linear,
+            nonlinear_coef=self.nonlinear_coef,
+            upwind_backward=BURGERS_UPWIND,
+            upwind_forward=None,
+            method="euler",
+        )
+
+    def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._kernel is None:
+            self._kernel = build_pde_kernel(self.kernel_spec())
+        u = np.ascontiguousarray(u, dtype=np.float64)
+        a = np.asarray(a, dtype=np.float64)
+        u_next, _ = self._kernel(u, np.ascontiguousarray(self.forcing(a)), self.dt, self.substeps, False)
+        return u_next, self.reward(u, a, u_next, np.asarray(k))

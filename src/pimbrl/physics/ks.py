@@ -1,0 +1,193 @@
+"""Kuramoto-Sivashinsky equation with four Gaussian actuators (Liu & Wang 2021, section 3.3).
+
+    u_t + u_xx + u_xxxx + u u_x = f(x, t),   x in [0, L) periodic,
+
+discretised exactly as the authors' code computes it (SPEC section 1.1):
+
+    du/dt = -D4 u / dx^4 - D2 u / dx^2 - Dup(u^2; u) / (2 dx) + f
+
+with 6th-order central D2, D4, a sign-switched 4th-order one-sided upwind difference ``Dup`` of
+``w = u^2``, and classic RK4 (dt = 0.001, 250 steps per control step, forcing frozen).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+import torch
+
+from .base import Array, Physics, xp_of
+from .kernels import PDEKernelSpec, build_pde_kernel
+from .stencil import Stencil, apply_upwind
+
+__all__ = ["KuramotoSivashinsky", "KS_D1", "KS_D2", "KS_D4", "KS_UPWIND_BACKWARD", "KS_UPWIND_FORWARD"]
+
+#: 6th-order central second difference (raw: divide by dx^2).
+KS_D2 = Stencil.centered((1 / 90, -3 / 20, 3 / 2, -49 / 18, 3 / 2, -3 / 20, 1 / 90), "D2")
+#: 6th-order central fourth difference (raw: divide by dx^4).
+KS_D4 = Stencil.centered((7 / 240, -2 / 5, 169 / 60, -122 / 15, 91 / 8, -122 / 15, 169 / 60, -2 / 5, 7 / 240), "D4")
+#: 4th-order one-sided backward first difference (used where u >= 0).
+KS_UPWIND_BACKWARD = Stencil((-4, -3, -2, -1, 0), (1 / 4, -4 / 3, 3.0, -4.0, 25 / 12), "Dup-")
+#: 4th-order one-sided forward first difference (used where u < 0).
+KS_UPWIND_FORWARD = Stencil((0, 1, 2, 3, 4), (-25 / 12, 4.0, -3.0, 4 / 3, -1 / 4), "Dup+")
+#: 6th-order central first difference (only for ``reward="physical"``).
+KS_D1 = Stencil.centered((-1 / 60, 3 / 20, -3 / 4, 0.0, 3 / 4, -3 / 20, 1 / 60), "D1")
+
+RewardMode = Literal["code", "physical"]
+
+
+class KuramotoSivashinsky(Physics):
+    """The controlled KS system.
+
+    Args:
+        n: grid points (64).
+        length: domain length L (8 pi).
+        dt: RK4 step (0.001; RK4 is stable only below ~0.00199 on this grid).
+        substeps: RK4 steps per control step (250, i.e. 0.25 time units).
+        action_bound: actuator amplitudes lie in ``[-action_bound, action_bound]`` (0.5).
+        reward: ``"code"`` (default) is the authors' reward on their scale:
+            ``-(1/S) sum_s [mean((D2 u_s)^2) + mean((Dup(u_s^2))^2) + mean(u_s f)]`` with raw stencil
+            sums; ``"physical"`` is the paper's formula with scaled derivatives,
+            ``-(1/S) sum_s mean(u_xx^2 + u_x^2 + u f)`` with ``u_xx = D2 u/dx^2`` and ``u_x = D1 u/dx``
+            (6th-order central).
+        periodic_actuators: wrap the Gaussian actuator shapes around the periodic domain (the
+            authors' code does not, so the actuator at x = 0 is half a bump).
+        divergence_bound: ``|u|`` beyond this counts as blown up (100; chaotic states stay below ~5).
+    """
+
+    name = "ks"
+
+    def __init__(
+        self,
+        n: int = 64,
+        length: float = 8 * np.pi,
+        dt: float = 0.001,
+        substeps: int = 250,
+        action_bound: float = 0.5,
+        reward: RewardMode = "code",
+        periodic_actuators: bool = False,
+        divergence_bound: float = 100.0,
+    ) -> None:
+        if n < 2 * KS_D4.halo + 1:
+            raise ValueError(f"KS needs at least {2 * KS_D4.halo + 1} grid points, got n={n}")
+        if reward not in ("code", "physical"):
+            raise ValueError(f"reward must be 'code' or 'physical', got {reward!r}")
+        if dt <= 0 or substeps < 1:
+            raise ValueError(f"need dt > 0 and substeps >= 1, got dt={dt}, substeps={substeps}")
+        self.n = int(n)
+        self.length = float(length)
+        self.dx = self.length / self.n
+        self.dt = float(dt)
+        self.substeps = int(substeps)
+        self.state_dim = self.n
+        self.action_dim = 4
+        self.action_low = np.full(4, -float(action_bound))
+        self.action_high = np.full(4, float(action_bound))
+        self.reward_mode: RewardMode = reward
+        self.periodic_actuators = bool(periodic_actuators)
+        self.divergence_bound = float(divergence_bound)
+
+        self.x = np.arange(self.n) * self.dx
+        self.actuator_centres = np.array([0.0, 0.25, 0.5, 0.75]) * self.length
+        dist = self.x[None, :] - self.actuator_centres[:, None]
+        if self.periodic_actuators:
+            dist = (dist + self.length / 2) % self.length - self.length / 2
+        #: ``(4, n)`` actuator shape functions; the forcing is ``f = a @ actuator_shapes``.
+        self.actuator_shapes = np.exp(-(dist**2) / 2) / np.sqrt(2 * np.pi)
+
+        dx = self.dx
+        #: the linear operator ``-D4/dx^4 - D2/dx^2`` as one stencil
+        self.linear = KS_D4.scaled(-1 / dx**4, "-D4/dx^4") + KS_D2.scaled(-1 / dx**2, "-D2/dx^2")
+        #: coefficient of the upwind term ``Dup(u^2)``
+        self.nonlinear_coef = -1.0 / (2.0 * dx)
+        # weights of the reward integrands [mean (D2u)^2, mean (Dup u^2)^2, mean (D1u)^2, mean u f]
+        if reward == "code":
+            self.reward_weights = np.array([1.0, 1.0, 0.0, 1.0])
+        else:
+            self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
+        self._kernel: Callable | None = None  # compiled on first use
+
+    # ------------------------------------------------------------------ equation
+    def forcing(self, a: Array) -> Array:
+        """Forcing field ``f = sum_i a_i g_i(x)`` of shape ``(..., n)`` from actions ``(..., 4)``."""
+        if isinstance(a, torch.Tensor):
+            return a @ torch.as_tensor(self.actuator_shapes, dtype=a.dtype, device=a.device)
+        return a @ self.actuator_shapes
+
+    def upwind(self, u: Array) -> Array:
+        """Raw sign-switched upwind difference ``Dup(u^2)`` (divide by dx for a derivative of u^2)."""
+        return apply_upwind(KS_UPWIND_BACKWARD, KS_UPWIND_FORWARD, u * u, u)
+
+    def rhs_forced(self, u: Array, f: Array) -> Array:
+        """``du/dt`` for a given forcing field ``f`` (broadcast against ``u``)."""
+        return self.linear.apply(u) + self.nonlinear_coef * self.upwind(u) + f
+
+    def rhs(self, u: Array, a: Array) -> Array:
+        return self.rhs_forced(u, self.forcing(a))
+
+    def substep_forced(self, u: Array, f: Array) -> Array:
+        """One classic RK4 step of length dt with forcing field ``f``."""
+        dt = self.dt
+        k1 = self.rhs_forced(u, f)
+        k2 = self.rhs_forced(u + 0.5 * dt * k1, f)
+        k3 = self.rhs_forced(u + 0.5 * dt * k2, f)
+        k4 = self.rhs_forced(u + dt * k3, f)
+        return u + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+    def substep(self, u: Array, a: Array) -> Array:
+        return self.substep_forced(u, self.forcing(a))
+
+    def step(self, u: Array, a: Array, substeps: int | None = None) -> Array:
+        f = self.forcing(a)
+        for _ in range(self.substeps if substeps is None else substeps):
+            u = self.substep_forced(u, f)
+        return u
+
+    # ------------------------------------------------------------------ reward
+    def reward_terms(self, u: Array, f: Array) -> Array:
+        """Integrands ``[mean (D2u)^2, mean (Dup u^2)^2, mean (D1u)^2, mean u f]`` of state(s) ``u``."""
+        xp = xp_of(u)
+        d2 = KS_D2.apply(u)
+        dup = self.upwind(u)
+        d1 = KS_D1.apply(u)
+        return xp.stack([(d2 * d2).mean(-1), (dup * dup).mean(-1), (d1 * d1).mean(-1), (u * f).mean(-1)], -1)
+
+    def reward_from_terms(self, terms: Array) -> Array:
+        """Reward from step-averaged integrands (``(..., 4)``, as returned by the kernel)."""
+        w = self.reward_weights
+        if isinstance(terms, torch.Tensor):
+            w = torch.as_tensor(w, dtype=terms.dtype, device=terms.device)
+        return -(terms * w).sum(-1)
+
+    def reward(self, u: Array, a: Array, u_next: Array, k: Array | int, path: Array | None = None) -> Array:
+        """Average over the solver steps of the control step (``path``; the start state if ``None``)."""
+        states = u[..., None, :] if path is None else path
+        f = self.forcing(a)[..., None, :]
+        return self.reward_from_terms(self.reward_terms(states, f).mean(-2))
+
+    # ------------------------------------------------------------------ fast simulator
+    def kernel_spec(self) -> PDEKernelSpec:
+        """The compiled kernel's operators: exactly this object's stencils and RK4."""
+        return PDEKernelSpec(
+            linear=self.linear,
+            nonlinear_coef=self.nonlinear_coef,
+            upwind_backward=KS_UPWIND_BACKWARD,
+            upwind_forward=KS_UPWIND_FORWARD,
+            method="rk4",
+            integrand_a=KS_D2,
+            integrand_c=KS_D1,  # always: terms then serve every reward mode (the pools rely on it)
+        )
+
+    def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`advance` but returns the step-averaged reward integrands ``(B, 4)``."""
+        if self._kernel is None:
+            self._kernel = build_pde_kernel(self.kernel_spec())
+        u = np.ascontiguousarray(u, dtype=np.float64)
+        f = np.ascontiguousarray(self.forcing(np.asarray(a, dtype=np.float64)))
+        return self._kernel(u, f, self.dt, self.substeps, True)
+
+    def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u_next, terms = self.advance_terms(u, a)
+        return u_next, self.reward_from_terms(terms)

@@ -1,0 +1,99 @@
+"""Figures: space-time contours of PDE episodes, state trajectories of ODE episodes."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never needs a display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from .simulate import EpisodeRecord
+
+__all__ = ["plot_episode", "plot_spacetime", "save_figure", "STATE_LABELS"]
+
+STATE_LABELS = {
+    "pimbrl/CartPole-v0": ["x", "x_dot", "theta", "theta_dot"],
+    "pimbrl/Pendulum-v0": ["theta", "theta_dot"],
+}
+
+
+def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Save ``fig`` as PNG atomically (temporary file, then rename) and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png.tmp")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def plot_spacetime(
+    ax: Axes, field: np.ndarray, x: np.ndarray, control_dt: float, title: str = "", vlim: float | None = None, cmap: str = "RdBu_r"
+) -> None:
+    """Filled contours of ``field`` (``(T+1, n)``, one row per control step) with time on the horizontal axis.
+
+    A signed field gets symmetric levels on a diverging map (``vlim`` fixes them, to compare panels);
+    a one-signed field its own range on a sequential map.
+    """
+    t = np.arange(field.shape[0]) * control_dt
+    lo, hi = float(np.min(field)), float(np.max(field))
+    if vlim is not None or (lo < 0 < hi):  # signed field: symmetric levels on a diverging map
+        lim = max(abs(lo), abs(hi)) if vlim is None else vlim
+        levels = np.linspace(-lim, lim, 41)
+    else:  # one-signed field (e.g. Burgers velocity): its own range on a sequential map
+        levels = np.linspace(lo, hi if hi > lo else lo + 1e-12, 41)
+        cmap = "viridis"
+    cs = ax.contourf(t, x, field.T, levels=levels, cmap=cmap, extend="both")
+    ax.figure.colorbar(cs, ax=ax, pad=0.01)
+    ax.set_xlabel("time")
+    ax.set_ylabel("x")
+    if title:
+        ax.set_title(title)
+
+
+def plot_episode(record: EpisodeRecord, path: str | os.PathLike, x: np.ndarray | None = None, field_offset: Sequence[float] | np.ndarray | None = None) -> Path:
+    """Plot one episode to ``path``: a space-time contour for fields (``x`` given), else state curves;
+    actions and rewards below. ``field_offset`` (per control step) is subtracted from a field, e.g. a
+    reference to show the tracking error."""
+    t_state = np.arange(record.states.shape[0]) * record.control_dt
+    t_act = np.arange(record.length) * record.control_dt
+    if x is not None:
+        fig, axes = plt.subplots(3, 1, figsize=(10, 8), gridspec_kw={"height_ratios": [3, 1, 1]}, sharex=False)
+        field = record.states if field_offset is None else record.states - np.asarray(field_offset)[:, None]
+        plot_spacetime(axes[0], field, x, record.control_dt, title=f"{record.env_id}: return {record.total_return:.2f}")
+    else:
+        fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+        labels = STATE_LABELS.get(record.env_id, [f"s{i}" for i in range(record.states.shape[1])])
+        for i in range(record.states.shape[1]):
+            axes[0].plot(t_state, record.states[:, i], label=labels[i] if i < len(labels) else f"s{i}")
+        axes[0].legend(loc="upper right", fontsize=8)
+        axes[0].set_title(f"{record.env_id}: return {record.total_return:.2f}")
+        axes[0].set_ylabel("state")
+    actions = record.actions.reshape(record.length, -1) if record.length else np.zeros((0, 1))
+    for i in range(actions.shape[1]):
+        axes[1].step(t_act, actions[:, i], where="post", label=f"a{i + 1}", lw=1)
+    axes[1].set_ylabel("action")
+    if actions.shape[1] > 1:
+        axes[1].legend(loc="upper right", fontsize=8, ncol=actions.shape[1])
+    axes[2].plot(t_act, record.rewards, lw=1, color="k")
+    axes[2].set_ylabel("reward")
+    axes[2].set_xlabel("time")
+    fig.tight_layout()
+    return save_figure(fig, path)
