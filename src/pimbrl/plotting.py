@@ -45,7 +45,13 @@ def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
 
 
 def plot_spacetime(
-    ax: Axes, field: np.ndarray, x: np.ndarray, control_dt: float, title: str = "", vlim: float | None = None, cmap: str = "RdBu_r"
+    ax: Axes,
+    field: np.ndarray,
+    x: np.ndarray,
+    control_dt: float,
+    title: str = "",
+    vlim: float | None = None,
+    cmap: str = "RdBu_r",
 ) -> None:
     """Filled contours of ``field`` (``(T+1, n)``, one row per control step) with time on the horizontal axis.
 
@@ -68,7 +74,12 @@ def plot_spacetime(
         ax.set_title(title)
 
 
-def plot_episode(record: EpisodeRecord, path: str | os.PathLike, x: np.ndarray | None = None, field_offset: Sequence[float] | np.ndarray | None = None) -> Path:
+def plot_episode(
+    record: EpisodeRecord,
+    path: str | os.PathLike,
+    x: np.ndarray | None = None,
+    field_offset: Sequence[float] | np.ndarray | None = None,
+) -> Path:
     """Plot one episode to ``path``: a space-time contour for fields (``x`` given), else state curves;
     actions and rewards below. ``field_offset`` (per control step) is subtracted from a field, e.g. a
     reference to show the tracking error."""

@@ -130,7 +130,9 @@ class PhysicsVectorEnv(VectorEnv):
         """Current physical states ``(num_envs, state_dim)`` (a copy)."""
         return self._u.copy()
 
-    def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    def reset(
+        self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         if isinstance(seed, list):
             seed = seed[0] if seed else None
         super().reset(seed=seed)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -38,7 +37,8 @@ class CartPoleTask(Task):
         if arr.ndim == 0 and batch == 1:
             arr = arr[None]
         if arr.shape != (batch,):
-            raise ValueError(f"Cart-Pole expects {'one discrete action' if batch == 1 else f'{batch} discrete actions'} in {{0, 1}}, got shape {arr.shape}")
+            what = "one discrete action" if batch == 1 else f"{batch} discrete actions"
+            raise ValueError(f"Cart-Pole expects {what} in {{0, 1}}, got shape {arr.shape}")
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise ValueError("action contains NaN or inf; Cart-Pole expects integers 0 (left) or 1 (right)")
         if not np.all((arr == 0) | (arr == 1)):
@@ -46,7 +46,7 @@ class CartPoleTask(Task):
         return np.where(arr == 1, self.physics.force_mag, -self.physics.force_mag)[:, None].astype(np.float64)
 
 
-_DOC = f"""Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPole-v0 settings).
+_DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPole-v0 settings).
 
     ## Description
     A pole is hinged on a cart that moves on a frictionless track; pushing the cart left or right
@@ -72,7 +72,7 @@ _DOC = f"""Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartP
     +1 for every step, the terminating one included.
 
     ## Starting State
-    All four state variables ``~ U(-0.05, 0.05)``; ``reset(options={{"initial_state": s}})`` with
+    All four state variables ``~ U(-0.05, 0.05)``; ``reset(options={"initial_state": s})`` with
     ``s = (x, x_dot, theta, theta_dot)``.
 
     ## Episode End

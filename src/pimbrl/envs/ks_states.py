@@ -117,9 +117,7 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
         if verbose:
             got = sum(len(s) for s in states)
             print(f"pimbrl: KS {split} pool: {min(got, n_target)}/{n_target} states from {run0} runs", file=sys.stderr)
-    return KSPool(
-        np.concatenate(states)[:n_target], np.concatenate(terms)[:n_target], np.concatenate(runs)[:n_target]
-    )
+    return KSPool(np.concatenate(states)[:n_target], np.concatenate(terms)[:n_target], np.concatenate(runs)[:n_target])
 
 
 def _cache_key(physics: KuramotoSivashinsky, cfg: KSPoolConfig) -> str:

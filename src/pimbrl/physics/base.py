@@ -21,12 +21,26 @@ import torch
 
 Array = TypeVar("Array", np.ndarray, torch.Tensor)
 
-__all__ = ["Array", "Physics", "xp_of"]
+__all__ = ["Array", "Physics", "superpose", "xp_of"]
 
 
 def xp_of(x: Any) -> Any:
     """The array namespace of ``x``: the ``torch`` module for tensors, else ``numpy``."""
     return torch if isinstance(x, torch.Tensor) else np
+
+
+def superpose(a: Array, shapes: np.ndarray) -> Array:
+    """Forcing field ``sum_i a[..., i] * shapes[i]`` of actuator amplitudes ``a`` and shape functions.
+
+    Written as an explicit sum rather than a matmul so that its rounding does not depend on the batch
+    shape: a batched step then equals the stacked single steps bit for bit.
+    """
+    if isinstance(a, torch.Tensor):
+        shapes = torch.as_tensor(shapes, dtype=a.dtype, device=a.device)
+    f = a[..., 0:1] * shapes[0]
+    for i in range(1, shapes.shape[0]):
+        f = f + a[..., i : i + 1] * shapes[i]
+    return f
 
 
 class Physics(ABC):
@@ -130,4 +144,5 @@ class Physics(ABC):
         """
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(state_dim={self.state_dim}, action_dim={self.action_dim}, dt={self.dt}, substeps={self.substeps})"
+        name = type(self).__name__
+        return f"{name}(state_dim={self.state_dim}, action_dim={self.action_dim}, dt={self.dt}, substeps={self.substeps})"

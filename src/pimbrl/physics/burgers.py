@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .base import Array, Physics
+from .base import Array, Physics, superpose
 from .kernels import PDEKernelSpec, build_pde_kernel
 from .stencil import Stencil
 
@@ -84,9 +84,7 @@ class Burgers(Physics):
     # ------------------------------------------------------------------ equation
     def forcing(self, a: Array) -> Array:
         """Forcing field ``a1 f1 + a2 f2`` of shape ``(..., n)`` from actions ``(..., 2)``."""
-        if isinstance(a, torch.Tensor):
-            return a @ torch.as_tensor(self.actuator_shapes, dtype=a.dtype, device=a.device)
-        return a @ self.actuator_shapes
+        return superpose(a, self.actuator_shapes)
 
     def rhs_forced(self, u: Array, f: Array) -> Array:
         """``du/dt`` for a given forcing field."""

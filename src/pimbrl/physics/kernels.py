@@ -256,7 +256,10 @@ def _wide_vectors() -> Iterator[None]:
 
 def _write_source(filename: str, source: str) -> Path:
     """Write ``source`` once into the kernel cache (atomically); fall back to a private temp dir."""
-    for directory in (cache_dir() / "kernels", Path(tempfile.gettempdir()) / f"pimbrl-kernels-{getattr(os, 'getuid', lambda: 0)()}"):
+    for directory in (
+        cache_dir() / "kernels",
+        Path(tempfile.gettempdir()) / f"pimbrl-kernels-{getattr(os, 'getuid', lambda: 0)()}",
+    ):
         try:
             directory.mkdir(parents=True, exist_ok=True)
             path = directory / filename

@@ -16,9 +16,8 @@ from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
-import torch
 
-from .base import Array, Physics, xp_of
+from .base import Array, Physics, superpose, xp_of
 from .kernels import PDEKernelSpec, build_pde_kernel
 from .stencil import Stencil, apply_upwind
 
@@ -112,9 +111,7 @@ class KuramotoSivashinsky(Physics):
     # ------------------------------------------------------------------ equation
     def forcing(self, a: Array) -> Array:
         """Forcing field ``f = sum_i a_i g_i(x)`` of shape ``(..., n)`` from actions ``(..., 4)``."""
-        if isinstance(a, torch.Tensor):
-            return a @ torch.as_tensor(self.actuator_shapes, dtype=a.dtype, device=a.device)
-        return a @ self.actuator_shapes
+        return superpose(a, self.actuator_shapes)
 
     def upwind(self, u: Array) -> Array:
         """Raw sign-switched upwind difference ``Dup(u^2)`` (divide by dx for a derivative of u^2)."""
@@ -157,9 +154,8 @@ class KuramotoSivashinsky(Physics):
     def reward_from_terms(self, terms: Array) -> Array:
         """Reward from step-averaged integrands (``(..., 4)``, as returned by the kernel)."""
         w = self.reward_weights
-        if isinstance(terms, torch.Tensor):
-            w = torch.as_tensor(w, dtype=terms.dtype, device=terms.device)
-        return -(terms * w).sum(-1)
+        # an explicit sum: its rounding does not depend on the batch shape (a reduction's may)
+        return -(terms[..., 0] * w[0] + terms[..., 1] * w[1] + terms[..., 2] * w[2] + terms[..., 3] * w[3])
 
     def reward(self, u: Array, a: Array, u_next: Array, k: Array | int, path: Array | None = None) -> Array:
         """Average over the solver steps of the control step (``path``; the start state if ``None``)."""
