@@ -1,0 +1,36 @@
+"""The command line: `pimbrl simulate` smoke tests and error messages."""
+
+from __future__ import annotations
+
+import pytest
+
+from pimbrl.cli import main
+
+
+@pytest.mark.parametrize(("env", "policy"), [("burgers", "random"), ("cartpole", "zero"), ("pendulum", "constant")])
+def test_simulate_writes_a_figure_and_prints_the_return(env: str, policy: str, tmp_path, capsys) -> None:
+    out = tmp_path / "fig.png"
+    args = ["simulate", env, "--policy", policy, "--seed", "3", "--out", str(out)]
+    if policy == "constant":
+        args += ["--value", "1.5"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "return=" in printed
+    assert out.exists() and out.stat().st_size > 10_000
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_simulate_constant_burgers_matches_the_spec_return(capsys, tmp_path) -> None:
+    # SPEC 1.2: the constant action (0.075, 0.075) returns about -20
+    assert main(["simulate", "burgers", "--policy", "constant", "--value", "0.075", "--out", str(tmp_path / "b.png")]) == 0
+    ret = float(capsys.readouterr().out.split("return=")[1].split()[0])
+    assert -21.5 < ret < -19.5
+
+
+def test_bad_input_gives_a_clear_error(capsys, tmp_path) -> None:
+    assert main(["simulate", "navier-stokes", "--out", str(tmp_path / "x.png")]) == 2
+    assert "unknown environment 'navier-stokes'" in capsys.readouterr().err
+    assert main(["simulate", "burgers", "--policy", "constant", "--out", str(tmp_path / "x.png")]) == 2
+    assert "needs --value" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["simulate", "burgers", "--steps", "0"])
