@@ -99,7 +99,7 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
         step_terms = np.empty((cfg.max_steps, cfg.batch, 4))
         traj[0] = u
         for k in range(cfg.max_steps):
-            u, step_terms[k] = physics.advance_terms(u, zeros)
+            u, step_terms[k], _ = physics.advance_terms(u, zeros)
             traj[k + 1] = u
         rate = np.abs(traj[1:] - traj[:-1]).max(-1) / physics.control_dt  # (T, B)
         for b in range(cfg.batch):

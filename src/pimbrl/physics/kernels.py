@@ -43,7 +43,7 @@ from .stencil import Stencil
 __all__ = ["PDEKernelSpec", "build_pde_kernel", "cache_dir", "N_REWARD_TERMS"]
 
 N_REWARD_TERMS = 4
-_GENERATOR_VERSION = "3"
+_GENERATOR_VERSION = "4"
 
 
 def cache_dir() -> Path:
@@ -122,10 +122,12 @@ def _rhs(u, f, out, dn, pu, pw, n):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def advance(u0, forcing, dt, nsub, accumulate):
+def advance(u0, actions, shapes, dt, nsub, accumulate, weights):
     bsz, n = u0.shape
     out = np.empty((bsz, n))
     terms = np.zeros((bsz, 4))
+    reward = np.zeros(bsz)
+    f = np.empty(n)
     u = np.empty(n)
     k1 = np.empty(n)
     k2 = np.empty(n)
@@ -138,7 +140,12 @@ def advance(u0, forcing, dt, nsub, accumulate):
     half = 0.5 * dt
     sixth = dt / 6.0
     for b in range(bsz):
-        f = forcing[b]
+        # forcing f = sum_i a_i g_i, frozen over the control step
+        for j in range(n):
+            f[j] = actions[b, 0] * shapes[0, j]
+        for i in range(1, shapes.shape[0]):
+            for j in range(n):
+                f[j] += actions[b, i] * shapes[i, j]
         for j in range(n):
             u[j] = u0[b, j]
         s_a = 0.0
@@ -165,7 +172,8 @@ def advance(u0, forcing, dt, nsub, accumulate):
             terms[b, 1] = s_n * norm
             terms[b, 2] = s_c * norm
             terms[b, 3] = s_f * norm
-    return out, terms
+            reward[b] = -(terms[b, 0] * weights[0] + terms[b, 1] * weights[1] + terms[b, 2] * weights[2] + terms[b, 3] * weights[3])
+    return out, terms, reward
 """
 
 _RK4 = """\
@@ -214,9 +222,11 @@ _LOADED: dict[str, Callable] = {}
 def build_pde_kernel(spec: PDEKernelSpec) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
     """Compile (or load from cache) the kernel for ``spec``.
 
-    The returned function has the signature ``advance(u0, forcing, dt, nsub, accumulate)`` with
-    ``u0`` and ``forcing`` C-contiguous float64 arrays of shape ``(B, n)``; it returns
-    ``(u_next, terms)`` where ``terms`` is ``(B, 4)`` (zeros unless ``accumulate``).
+    The returned function has the signature ``advance(u0, actions, shapes, dt, nsub, accumulate, weights)``
+    with C-contiguous float64 arrays ``u0`` ``(B, n)``, ``actions`` ``(B, m)`` and actuator ``shapes``
+    ``(m, n)`` (the forcing is ``actions @ shapes``, summed actuator by actuator) and reward ``weights``
+    ``(4,)``; it returns ``(u_next, terms, reward)`` with the step-averaged integrands ``terms``
+    ``(B, 4)`` and ``reward = -terms @ weights`` ``(B,)`` (both zeros unless ``accumulate``).
     """
     source = generate_source(spec)
     key = hashlib.sha256(source.encode()).hexdigest()[:16]
@@ -231,7 +241,7 @@ def build_pde_kernel(spec: PDEKernelSpec) -> Callable[..., tuple[np.ndarray, np.
     module_spec.loader.exec_module(module)
     kernel = module.advance
     with _wide_vectors():
-        kernel.compile((float64[:, ::1], float64[:, ::1], float64, int64, boolean))
+        kernel.compile((float64[:, ::1], float64[:, ::1], float64[:, ::1], float64, int64, boolean, float64[::1]))
     _LOADED[key] = kernel
     return kernel
 

@@ -176,14 +176,15 @@ class KuramotoSivashinsky(Physics):
             integrand_c=KS_D1,  # always: terms then serve every reward mode (the pools rely on it)
         )
 
-    def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Like :meth:`advance` but returns the step-averaged reward integrands ``(B, 4)``."""
+    def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Like :meth:`advance` but also returns the step-averaged reward integrands ``(B, 4)``:
+        ``(u_next, terms, reward)``."""
         if self._kernel is None:
             self._kernel = build_pde_kernel(self.kernel_spec())
         u = np.ascontiguousarray(u, dtype=np.float64)
-        f = np.ascontiguousarray(self.forcing(np.asarray(a, dtype=np.float64)))
-        return self._kernel(u, f, self.dt, self.substeps, True)
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        return self._kernel(u, a, self.actuator_shapes, self.dt, self.substeps, True, self.reward_weights)
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u_next, terms = self.advance_terms(u, a)
-        return u_next, self.reward_from_terms(terms)
+        u_next, _, reward = self.advance_terms(u, a)
+        return u_next, reward
