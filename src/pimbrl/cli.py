@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+
+from .config import ConfigError, add_arguments, overrides_from_args
 
 __all__ = ["main", "build_parser"]
 
@@ -38,6 +41,106 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
+    short = env_id.split("/")[-1].split("-v")[0].lower()
+    return str(Path("runs") / short / f"{method}-{agent}-seed{seed}")
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .agents import AgentConfig
+    from .simulate import resolve_env_id
+    from .training import TrainConfig, Trainer, resolve_config
+
+    env_id = resolve_env_id(args.env)
+    overrides = overrides_from_args(args, TrainConfig)
+    if args.steps is not None:
+        overrides["total_steps"] = args.steps
+    if args.env_kwargs:
+        try:
+            overrides["env_kwargs"] = json.loads(args.env_kwargs)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--env-kwargs must be a JSON object, e.g. '{{\"reward\": \"physical\"}}': {exc}") from None
+    cfg = resolve_config(env_id, overrides, overrides_from_args(args, AgentConfig, prefix="agent."))
+    run_dir = args.run_dir or _default_run_dir(env_id, cfg.method, cfg.agent, cfg.seed)
+    trainer = Trainer.create(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
+    print(f"run directory: {run_dir}", file=sys.stderr)
+    summary = trainer.run()
+    _print_summary(run_dir, summary)
+    return 0
+
+
+def _print_summary(run_dir: str, summary) -> None:
+    final = "-" if summary.final_return_mean is None else f"{summary.final_return_mean:.3f}"
+    reached = "not reached" if summary.steps_to_threshold is None else f"{summary.steps_to_threshold:,d} steps"
+    print(
+        f"{run_dir}: {summary.steps:,d} steps, {summary.updates:,d} updates, final test return {final}, "
+        f"threshold {reached}, {summary.wall_s:.1f} s"
+    )
+
+
+def _cmd_resume(args: argparse.Namespace) -> int:
+    from .training import Trainer
+
+    trainer = Trainer.resume(args.run_dir, progress=not args.quiet)
+    if trainer.finished:
+        print(f"{args.run_dir} has already finished ({trainer.t:,d} steps); nothing to do")
+        return 0
+    print(f"resuming {args.run_dir} at step {trainer.t:,d}", file=sys.stderr)
+    _print_summary(args.run_dir, trainer.run())
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .training import Evaluator, Trainer, steps_to_threshold
+
+    trainer = Trainer.resume(args.run_dir, progress=False)
+    if not trainer.run_dir.checkpoint_path.exists():
+        raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
+    cfg = trainer.cfg
+    episodes = args.episodes or cfg.eval_episodes
+    evaluator = trainer.evaluator if episodes == cfg.eval_episodes else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
+    result = evaluator.run(lambda o: trainer.agent.act(o, deterministic=True))
+    s = result.summary()
+    print(
+        f"{args.run_dir} (step {trainer.t:,d}, {episodes} test episodes): return mean {s['return_mean']:.3f}, "
+        f"min {s['return_min']:.3f}, max {s['return_max']:.3f}, std {s['return_std']:.3f}"
+    )
+    rows = trainer.run_dir.evaluations.read()
+    if cfg.threshold is not None:
+        reached = steps_to_threshold(rows, cfg.threshold)
+        print(f"steps to threshold {cfg.threshold:g}: {'not reached' if reached is None else f'{reached:,d}'}")
+    if args.json:
+        print(json.dumps({"step": trainer.t, **s, "config": dataclasses.asdict(cfg)}, default=str))
+    return 0
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from . import plotting
+    from .training import RunDirectory
+
+    curves = []
+    thresholds = set()
+    for i, path in enumerate(args.run_dirs):
+        run = RunDirectory(path)
+        payload = run.read_config()
+        rows = run.evaluations.read()
+        if not rows:
+            raise ValueError(f"{path} has no evaluations yet")
+        cfg = payload["config"]
+        label = args.labels[i] if args.labels and i < len(args.labels) else f"{cfg['method']}/{cfg['agent']} seed {cfg['seed']}"
+        col = lambda name: np.array([float(r[name]) for r in rows])  # noqa: E731
+        curves.append((label, col("step"), col("return_mean"), col("return_min"), col("return_max")))
+        if cfg.get("threshold") is not None:
+            thresholds.add(float(cfg["threshold"]))
+    out = Path(args.out)
+    envs = {RunDirectory(p).read_config()["config"]["env"] for p in args.run_dirs}
+    plotting.plot_learning_curves(curves, out, title=", ".join(sorted(envs)), threshold=thresholds.pop() if len(thresholds) == 1 else None)
+    print(f"figure: {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -51,6 +154,41 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--initial-states", choices=["train", "test"], default=None, help="KS only: which initial-state pool")
     sim.add_argument("--out", help="PNG path (default: out/<env>_<policy>_seed<seed>.png)")
     sim.set_defaults(func=_cmd_simulate)
+
+    from .agents import AgentConfig
+    from .training import TrainConfig
+
+    tr = sub.add_parser(
+        "train",
+        help="train an agent (presets per environment; any field can be overridden)",
+        description="Train an agent. Presets come from the paper per environment; every field of the "
+        "configuration can be overridden with the flags below.",
+    )
+    tr.add_argument("env", help="ks | burgers | cartpole | pendulum, a pimbrl id, or any Gymnasium id (e.g. Pendulum-v1)")
+    tr.add_argument("--steps", type=int, default=None, help="real environment steps (alias of --total-steps)")
+    tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
+    tr.add_argument("--env-kwargs", default=None, help="JSON object of keyword arguments for gymnasium.make")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
+    add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config"))
+    add_arguments(tr, AgentConfig, prefix="agent.")
+    tr.set_defaults(func=_cmd_train)
+
+    rs = sub.add_parser("resume", help="continue a run from its last checkpoint")
+    rs.add_argument("run_dir")
+    rs.add_argument("--quiet", action="store_true")
+    rs.set_defaults(func=_cmd_resume)
+
+    ev = sub.add_parser("eval", help="evaluate a run's latest checkpoint on its test episodes")
+    ev.add_argument("run_dir")
+    ev.add_argument("--episodes", type=int, default=None, help="number of test episodes (default: the run's)")
+    ev.add_argument("--json", action="store_true", help="also print a JSON line")
+    ev.set_defaults(func=_cmd_eval)
+
+    pl = sub.add_parser("plot", help="learning curves (mean test return with the min-max band) of run directories")
+    pl.add_argument("run_dirs", nargs="+")
+    pl.add_argument("--out", default="curves.png")
+    pl.add_argument("--labels", nargs="*", default=None, help="one label per run directory")
+    pl.set_defaults(func=_cmd_plot)
     return parser
 
 
@@ -61,9 +199,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--steps must be >= 1")
     try:
         return int(args.func(args))
-    except (ValueError, FileNotFoundError) as exc:
+    except (ConfigError, ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"pimbrl {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"pimbrl {args.command}: interrupted; the last checkpoint is intact (`pimbrl resume` continues from it)", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from .simulate import EpisodeRecord
 
-__all__ = ["plot_episode", "plot_spacetime", "save_figure", "STATE_LABELS"]
+__all__ = ["plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "STATE_LABELS"]
 
 STATE_LABELS = {
     "pimbrl/CartPole-v0": ["x", "x_dot", "theta", "theta_dot"],
@@ -106,5 +106,30 @@ def plot_episode(
     axes[2].plot(t_act, record.rewards, lw=1, color="k")
     axes[2].set_ylabel("reward")
     axes[2].set_xlabel("time")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def plot_learning_curves(
+    curves: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    path: str | os.PathLike,
+    title: str = "",
+    threshold: float | None = None,
+    xlabel: str = "real environment steps",
+) -> Path:
+    """Learning curves as the paper draws them: the mean test return as a line and the min-max range of
+    the test episodes as a band, one curve per ``(label, steps, mean, low, high)``."""
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for label, steps, mean, low, high in curves:
+        (line,) = ax.plot(steps, mean, label=label, lw=1.6)
+        ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.18, lw=0)
+    if threshold is not None:
+        ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"threshold {threshold:g}")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("test return")
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     return save_figure(fig, path)

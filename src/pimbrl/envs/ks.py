@@ -22,7 +22,8 @@ class KSTask(Task):
         reward: ``"code"`` (the authors' reward scale, default) or ``"physical"``.
         periodic_actuators: wrap the actuator Gaussians periodically (default False, as the authors).
         initial_states: ``"train"`` (default) or ``"test"`` pool, or an array ``(n, 64)`` of states.
-        pool_config: generator settings of the pools (see :mod:`pimbrl.envs.ks_states`).
+        pool_config: generator settings of the pools (a :class:`KSPoolConfig` or a dict of its fields; see
+            :mod:`pimbrl.envs.ks_states`).
         divergence_penalty: reward of a step that blows up (default -100; a settled uncontrolled episode
             returns about -920, and with gamma = 0.977 the discounted cost of the rest of any episode
             is below 100).
@@ -35,12 +36,12 @@ class KSTask(Task):
         reward: Literal["code", "physical"] = "code",
         periodic_actuators: bool = False,
         initial_states: str | np.ndarray = "train",
-        pool_config: KSPoolConfig | None = None,
+        pool_config: KSPoolConfig | dict | None = None,
         divergence_penalty: float = -100.0,
     ) -> None:
         self.physics = KuramotoSivashinsky(reward=reward, periodic_actuators=periodic_actuators)
         self.divergence_penalty = float(divergence_penalty)
-        self.pool_config = pool_config
+        self.pool_config = KSPoolConfig(**pool_config) if isinstance(pool_config, dict) else pool_config
         if isinstance(initial_states, str):
             if initial_states not in ("train", "test"):
                 raise ValueError(f"initial_states must be 'train', 'test' or an array of states, got {initial_states!r}")

@@ -1,0 +1,149 @@
+"""Agent interface and hyperparameters shared by TD3, DDPG and SAC."""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..buffers import Batch
+from ..config import in_range, param, positive
+
+__all__ = ["Agent", "AgentConfig", "frozen", "make_optimizer", "polyak_update", "target_copy"]
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Hyperparameters of the off-policy actor-critic agents (defaults: the paper's TD3 table)."""
+
+    hidden: tuple[int, ...] = param((256, 256), "hidden layer sizes of actor and critics", (lambda v: len(v) > 0 and all(h > 0 for h in v), "must be a non-empty list of positive sizes"))
+    actor_lr: float = param(1e-3, "actor learning rate (Adam)", positive())
+    critic_lr: float = param(1e-3, "critic learning rate (Adam)", positive())
+    gamma: float = param(0.99, "discount factor", in_range(0.0, 1.0, lo_open=True))
+    polyak: float = param(0.995, "target networks: theta_targ <- polyak theta_targ + (1 - polyak) theta", in_range(0.0, 1.0, hi_open=True))
+    batch_size: int = param(128, "minibatch size of each update", positive())
+    policy_delay: int = param(2, "TD3: actor and target updates every this many critic updates", positive())
+    exploration_noise: float = param(0.1, "TD3/DDPG: Gaussian action noise, as a fraction of each action's half-range", in_range(0.0, 1.0))
+    target_smoothing: bool = param(True, "TD3: target-policy smoothing (Fujimoto et al.); the paper's Algorithm A1 has none")
+    target_noise: float = param(0.2, "TD3: std of the target-policy smoothing noise (normalised actions)", in_range(0.0, 1.0))
+    noise_clip: float = param(0.5, "TD3: clip of the target-policy smoothing noise", in_range(0.0, 1.0))
+    init_alpha: float = param(0.2, "SAC: initial entropy temperature", positive())
+    autotune_alpha: bool = param(True, "SAC: tune the temperature to reach the target entropy")
+    alpha_lr: float = param(3e-4, "SAC: temperature learning rate", positive())
+    target_entropy: float | None = param(None, "SAC: target entropy (default: -action_dim)")
+
+
+def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor], polyak: float) -> None:
+    """In place ``target <- polyak * target + (1 - polyak) * source`` for every pair (one fused op)."""
+    with torch.no_grad():
+        torch._foreach_lerp_(list(target), list(source), 1.0 - polyak)
+
+
+class frozen:
+    """Context manager: parameters of a module do not accumulate gradients inside (e.g. the critic
+    during an actor update), so no time is spent computing gradients that would be discarded."""
+
+    def __init__(self, module: nn.Module) -> None:
+        self.params = [p for p in module.parameters() if p.requires_grad]
+
+    def __enter__(self) -> None:
+        for p in self.params:
+            p.requires_grad_(False)
+
+    def __exit__(self, *exc: Any) -> None:
+        for p in self.params:
+            p.requires_grad_(True)
+
+
+def target_copy(module: nn.Module) -> nn.Module:
+    """A frozen deep copy for use as a target network."""
+    target = copy.deepcopy(module)
+    for p in target.parameters():
+        p.requires_grad_(False)
+    return target
+
+
+class Agent(ABC):
+    """An off-policy actor-critic agent acting in normalised actions ``[-1, 1]^act_dim``.
+
+    Randomness is owned by the agent and seeded at construction: network initialisation (a forked torch
+    RNG, so the global one is untouched), exploration noise (a ``numpy.random.Generator``) and update noise
+    (a ``torch.Generator``). All of it is part of :meth:`state_dict`.
+    """
+
+    name: str = "agent"
+
+    def __init__(self, obs_dim: int, act_dim: int, config: AgentConfig, seed: int) -> None:
+        self.obs_dim = int(obs_dim)
+        self.act_dim = int(act_dim)
+        self.config = config
+        self.n_updates = 0
+        self.rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1,)))
+        self.generator = torch.Generator().manual_seed(int(np.random.SeedSequence(seed, spawn_key=(2,)).generate_state(1)[0]))
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(np.random.SeedSequence(seed, spawn_key=(3,)).generate_state(1)[0]))
+            self._build()
+
+    @abstractmethod
+    def _build(self) -> None:
+        """Create networks and optimisers (called under a seeded torch RNG)."""
+
+    @abstractmethod
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Normalised actions ``(B, act_dim)`` for observations ``(B, obs_dim)``; exploration unless deterministic."""
+
+    @abstractmethod
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One gradient update; returns detached scalar metrics (``agent/critic_loss``, ...)."""
+
+    @abstractmethod
+    def _modules(self) -> dict[str, Any]:
+        """Modules and optimisers whose ``state_dict`` make up the agent's learned state."""
+
+    def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        """Deterministic normalised action for a batch of observations (differentiable)."""
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        """A deep copy of the learned state and RNGs.
+
+        An optimizer's ``state_dict`` shares tensors (such as Adam's step counter) with the live optimizer;
+        the copy keeps a saved state from changing as training goes on.
+        """
+        return copy.deepcopy({
+            "name": self.name,
+            "n_updates": self.n_updates,
+            "rng": self.rng.bit_generator.state,
+            "generator": self.generator.get_state(),
+            "modules": {k: m.state_dict() for k, m in self._modules().items()},
+        })
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state["name"] != self.name:
+            raise ValueError(f"checkpoint holds a {state['name']} agent, not {self.name}")
+        self.n_updates = int(state["n_updates"])
+        self.rng.bit_generator.state = state["rng"]
+        self.generator.set_state(state["generator"])
+        modules = self._modules()
+        for k, s in state["modules"].items():
+            modules[k].load_state_dict(s)
+
+    @staticmethod
+    def _check_finite(loss: torch.Tensor, what: str) -> None:
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"{what} became {loss.item()}: training diverged. Lower the learning rates or check the rewards; "
+                "the last checkpoint of the run is intact and can be resumed with changed settings"
+            )
+
+
+def make_optimizer(params: Iterable[torch.Tensor], lr: float) -> torch.optim.Optimizer:
+    """Adam with the fused kernel (measured 3.5x faster than the per-tensor loop on one CPU thread)."""
+    return torch.optim.Adam(params, lr=lr, fused=True)
+

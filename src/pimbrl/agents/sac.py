@@ -1,0 +1,101 @@
+"""Soft actor-critic (Haarnoja et al. 2018) with twin critics and automatic entropy tuning."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..buffers import Batch
+from .base import Agent, frozen, make_optimizer, polyak_update, target_copy
+from .networks import CriticEnsemble, GaussianActor
+
+__all__ = ["SAC"]
+
+
+class SAC(Agent):
+    """Soft actor-critic; the temperature ``alpha`` is learned towards ``target_entropy`` (default ``-act_dim``)."""
+
+    name = "sac"
+
+    def _build(self) -> None:
+        cfg = self.config
+        self.actor = GaussianActor(self.obs_dim, self.act_dim, cfg.hidden)
+        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=2)
+        self.critic_targ = target_copy(self.critic)
+        self.actor_opt = make_optimizer(self.actor.parameters(), cfg.actor_lr)
+        self.critic_opt = make_optimizer(self.critic.parameters(), cfg.critic_lr)
+        self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(cfg.init_alpha)))
+        self.alpha_opt = make_optimizer([self.log_alpha], cfg.alpha_lr)
+        self.target_entropy = -float(self.act_dim) if cfg.target_entropy is None else float(cfg.target_entropy)
+
+    def _modules(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor,
+            "critic": self.critic,
+            "critic_targ": self.critic_targ,
+            "actor_opt": self.actor_opt,
+            "critic_opt": self.critic_opt,
+            "alpha": _ParamHolder(self.log_alpha),
+            "alpha_opt": self.alpha_opt,
+        }
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.detach().exp()
+
+    def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.actor(obs, deterministic=True)[0]
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
+        a, _ = self.actor(obs_t, deterministic=deterministic, generator=self.generator)
+        return a.numpy().astype(np.float32)
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        cfg = self.config
+        alpha = self.alpha
+        with torch.no_grad():
+            next_a, next_logp = self.actor(batch.next_obs, generator=self.generator)
+            q_next = self.critic_targ(batch.next_obs, next_a).min(dim=0).values - alpha * next_logp
+            target = batch.reward + cfg.gamma * (1.0 - batch.terminated) * q_next
+        q = self.critic(batch.obs, batch.action)
+        critic_loss = (q - target).pow(2).mean(dim=1).sum()
+        self._check_finite(critic_loss, "the critic loss")
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+
+        a, logp = self.actor(batch.obs, generator=self.generator)
+        with frozen(self.critic):
+            actor_loss = (alpha * logp - self.critic(batch.obs, a).min(dim=0).values).mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_opt.step()
+
+        metrics = {
+            "agent/critic_loss": critic_loss.detach(),
+            "agent/actor_loss": actor_loss.detach(),
+            "agent/q_mean": q.detach().mean(),
+            "agent/entropy": -logp.detach().mean(),
+            "agent/alpha": alpha,
+        }
+        if cfg.autotune_alpha:
+            alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+            self.alpha_opt.zero_grad(set_to_none=True)
+            alpha_loss.backward()
+            self.alpha_opt.step()
+        polyak_update(self.critic_targ.parameters(), self.critic.parameters(), cfg.polyak)
+        self.n_updates += 1
+        return metrics
+
+
+class _ParamHolder(torch.nn.Module):
+    """Lets a bare parameter be saved and restored through ``state_dict`` like a module."""
+
+    def __init__(self, p: torch.nn.Parameter) -> None:
+        super().__init__()
+        self.p = p

@@ -1,0 +1,110 @@
+"""TD3 (Fujimoto et al. 2018) as in the paper's appendix, and DDPG as its one-critic special case.
+
+The update follows Algorithm A1/A2 of the paper: twin critics regress on
+``y = r + gamma (1 - terminated) min_i Q_targ,i(s', mu_targ(s') [+ noise])``; every ``policy_delay``-th
+update the actor ascends ``Q_1(s, mu(s))`` and the targets move by Polyak averaging. Target-policy
+smoothing (clipped Gaussian noise on the target action) is on by default as in Fujimoto et al.; the
+paper's pseudocode has none (``target_smoothing=False``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..buffers import Batch
+from .base import Agent, frozen, make_optimizer, polyak_update, target_copy
+from .networks import CriticEnsemble, DeterministicActor
+
+__all__ = ["TD3", "DDPG"]
+
+
+class TD3(Agent):
+    """Twin-delayed deep deterministic policy gradient."""
+
+    name = "td3"
+    n_critics = 2
+
+    def _build(self) -> None:
+        cfg = self.config
+        self.actor = DeterministicActor(self.obs_dim, self.act_dim, cfg.hidden)
+        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=self.n_critics)
+        self.actor_targ = target_copy(self.actor)
+        self.critic_targ = target_copy(self.critic)
+        self.actor_opt = make_optimizer(self.actor.parameters(), cfg.actor_lr)
+        self.critic_opt = make_optimizer(self.critic.parameters(), cfg.critic_lr)
+
+    @property
+    def _delay(self) -> int:
+        return self.config.policy_delay
+
+    @property
+    def _smoothing(self) -> bool:
+        return self.config.target_smoothing
+
+    def _modules(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor,
+            "critic": self.critic,
+            "actor_targ": self.actor_targ,
+            "critic_targ": self.critic_targ,
+            "actor_opt": self.actor_opt,
+            "critic_opt": self.critic_opt,
+        }
+
+    def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.actor(obs)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
+        a = self.actor(obs_t).numpy()
+        if not deterministic and self.config.exploration_noise > 0:
+            a = np.clip(a + self.config.exploration_noise * self.rng.standard_normal(a.shape), -1.0, 1.0)
+        return a.astype(np.float32)
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        cfg = self.config
+        with torch.no_grad():
+            next_a = self.actor_targ(batch.next_obs)
+            if self._smoothing:
+                noise = torch.randn(next_a.shape, generator=self.generator) * cfg.target_noise
+                next_a = (next_a + noise.clamp(-cfg.noise_clip, cfg.noise_clip)).clamp(-1.0, 1.0)
+            q_next = self.critic_targ(batch.next_obs, next_a).min(dim=0).values
+            target = batch.reward + cfg.gamma * (1.0 - batch.terminated) * q_next
+        q = self.critic(batch.obs, batch.action)
+        critic_loss = (q - target).pow(2).mean(dim=1).sum()
+        self._check_finite(critic_loss, "the critic loss")
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.n_updates += 1
+        metrics = {"agent/critic_loss": critic_loss.detach(), "agent/q_mean": q.detach().mean()}
+        if self.n_updates % self._delay == 0:
+            with frozen(self.critic):
+                actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs)).mean()
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            self.actor_opt.step()
+            polyak_update(self.critic_targ.parameters(), self.critic.parameters(), cfg.polyak)
+            polyak_update(self.actor_targ.parameters(), self.actor.parameters(), cfg.polyak)
+            metrics["agent/actor_loss"] = actor_loss.detach()
+        return metrics
+
+
+class DDPG(TD3):
+    """Deep deterministic policy gradient (Lillicrap et al. 2016): one critic, actor and targets updated
+    every step, no target-policy smoothing."""
+
+    name = "ddpg"
+    n_critics = 1
+
+    @property
+    def _delay(self) -> int:
+        return 1
+
+    @property
+    def _smoothing(self) -> bool:
+        return False

@@ -1,0 +1,161 @@
+"""Preallocated replay storage returning typed batches.
+
+Transitions are stored as torch tensors (float32) in preallocated ring buffers; sampling draws indices
+from a caller-supplied ``numpy.random.Generator`` and gathers with one ``index_select`` per field.
+``terminated`` and ``truncated`` are stored apart: a TD target bootstraps through a time-limit
+truncation and only stops at a true termination.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["Batch", "ReplayBuffer"]
+
+
+@dataclass(frozen=True)
+class Batch:
+    """A batch of transitions (torch tensors, leading dimension B)."""
+
+    obs: torch.Tensor  # (B, obs_dim)
+    action: torch.Tensor  # (B, act_dim), the agent's normalised action
+    reward: torch.Tensor  # (B,)
+    next_obs: torch.Tensor  # (B, obs_dim)
+    terminated: torch.Tensor  # (B,) float: 1 where the episode truly ended (no bootstrap)
+    truncated: torch.Tensor  # (B,) float: 1 where a time limit cut the episode (bootstrap anyway)
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+    @staticmethod
+    def concat(parts: list[Batch]) -> Batch:
+        """Concatenate batches along the batch dimension."""
+        return Batch(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Batch)))
+
+
+class ReplayBuffer:
+    """Ring buffer of ``capacity`` transitions.
+
+    Args:
+        capacity: maximum number of transitions kept (the oldest are overwritten).
+        obs_dim, act_dim: flat observation and action sizes.
+        extras: optional named per-transition arrays, ``{name: shape}``, stored alongside (float32),
+            e.g. physical states for model training.
+    """
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, extras: dict[str, tuple[int, ...]] | None = None) -> None:
+        if capacity < 1:
+            raise ValueError(f"buffer capacity must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        self.obs_dim = int(obs_dim)
+        self.act_dim = int(act_dim)
+        self.obs = torch.zeros((self.capacity, self.obs_dim))
+        self.next_obs = torch.zeros((self.capacity, self.obs_dim))
+        self.action = torch.zeros((self.capacity, self.act_dim))
+        self.reward = torch.zeros(self.capacity)
+        self.terminated = torch.zeros(self.capacity)
+        self.truncated = torch.zeros(self.capacity)
+        self.extras = {k: torch.zeros((self.capacity, *shape)) for k, shape in (extras or {}).items()}
+        self.pos = 0
+        self.size = 0
+        self.total_added = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(
+        self,
+        obs: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray | float,
+        next_obs: np.ndarray,
+        terminated: np.ndarray | bool,
+        truncated: np.ndarray | bool,
+        **extras: np.ndarray,
+    ) -> None:
+        """Add one transition, or a batch of them (leading dimension B), after checking they are finite."""
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
+        n = obs_t.shape[0]
+        act_t = torch.as_tensor(np.asarray(action, dtype=np.float32)).reshape(n, self.act_dim)
+        rew_t = torch.as_tensor(np.asarray(reward, dtype=np.float32)).reshape(n)
+        nxt_t = torch.as_tensor(np.asarray(next_obs, dtype=np.float32)).reshape(n, self.obs_dim)
+        for name, t in (("obs", obs_t), ("action", act_t), ("reward", rew_t), ("next_obs", nxt_t)):
+            if not torch.isfinite(t).all():
+                raise ValueError(f"refusing to store a non-finite {name} in the replay buffer")
+        term_t = torch.as_tensor(np.asarray(terminated, dtype=np.float32)).reshape(n)
+        trunc_t = torch.as_tensor(np.asarray(truncated, dtype=np.float32)).reshape(n)
+        if n > self.capacity:
+            raise ValueError(f"cannot add {n} transitions to a buffer of capacity {self.capacity}")
+        idx = (self.pos + torch.arange(n)) % self.capacity
+        self.obs[idx] = obs_t
+        self.action[idx] = act_t
+        self.reward[idx] = rew_t
+        self.next_obs[idx] = nxt_t
+        self.terminated[idx] = term_t
+        self.truncated[idx] = trunc_t
+        missing = set(self.extras) - set(extras)
+        if missing or set(extras) - set(self.extras):
+            raise ValueError(f"extras must be exactly {sorted(self.extras)}, got {sorted(extras)}")
+        for k, v in extras.items():
+            self.extras[k][idx] = torch.as_tensor(np.asarray(v, dtype=np.float32)).reshape(n, *self.extras[k].shape[1:])
+        self.pos = int((self.pos + n) % self.capacity)
+        self.size = min(self.size + n, self.capacity)
+        self.total_added += n
+
+    def sample_indices(self, batch_size: int, rng: np.random.Generator) -> torch.Tensor:
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty replay buffer")
+        return torch.from_numpy(rng.integers(0, self.size, size=batch_size))
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        """``batch_size`` transitions drawn uniformly with replacement."""
+        return self.gather(self.sample_indices(batch_size, rng))
+
+    def gather(self, idx: torch.Tensor) -> Batch:
+        return Batch(
+            self.obs.index_select(0, idx),
+            self.action.index_select(0, idx),
+            self.reward.index_select(0, idx),
+            self.next_obs.index_select(0, idx),
+            self.terminated.index_select(0, idx),
+            self.truncated.index_select(0, idx),
+        )
+
+    def extra(self, name: str, idx: torch.Tensor) -> torch.Tensor:
+        return self.extras[name].index_select(0, idx)
+
+    # ------------------------------------------------------------------ checkpointing
+    def state_dict(self) -> dict[str, Any]:
+        """Contents (only the filled part) and counters."""
+        n = self.size
+        return {
+            "capacity": self.capacity,
+            "pos": self.pos,
+            "size": n,
+            "total_added": self.total_added,
+            "data": {
+                k: v[:n].clone()
+                for k, v in {
+                    "obs": self.obs,
+                    "next_obs": self.next_obs,
+                    "action": self.action,
+                    "reward": self.reward,
+                    "terminated": self.terminated,
+                    "truncated": self.truncated,
+                    **{f"extra/{e}": t for e, t in self.extras.items()},
+                }.items()
+            },
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state["capacity"] != self.capacity:
+            raise ValueError(f"checkpointed buffer capacity {state['capacity']} differs from {self.capacity}")
+        n = state["size"]
+        for k, v in state["data"].items():
+            target = self.extras[k[len("extra/") :]] if k.startswith("extra/") else getattr(self, k)
+            target[:n] = v
+        self.pos, self.size, self.total_added = state["pos"], n, state["total_added"]

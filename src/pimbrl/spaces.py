@@ -1,0 +1,58 @@
+"""Mapping between an agent's normalised continuous actions and an environment's action space.
+
+Agents always act in ``[-1, 1]^d``. The adapter turns that into what ``env.step`` expects:
+
+* ``Box(low, high)``: the affine map ``low + (a + 1) (high - low) / 2``, so exploration noise of standard
+  deviation ``sigma`` in the agent's space is ``sigma (high - low) / 2`` in each physical dimension;
+* ``Discrete(2)`` (Cart-Pole): a one-dimensional actor output, action ``1`` where ``a >= 0`` else ``0``;
+* ``Discrete(n > 2)``: an ``n``-dimensional output, action ``argmax(a)`` (offset by ``space.start``).
+
+The critic always sees the continuous action, which is what is stored in replay buffers.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+__all__ = ["ActionAdapter"]
+
+
+class ActionAdapter:
+    """Maps normalised actions ``(..., dim)`` in ``[-1, 1]`` to environment actions."""
+
+    def __init__(self, space: spaces.Space) -> None:
+        self.space = space
+        if isinstance(space, spaces.Box):
+            if not (np.all(np.isfinite(space.low)) and np.all(np.isfinite(space.high))):
+                raise ValueError(f"the action space {space} must be bounded for an actor with a tanh output")
+            self.kind = "box"
+            self.dim = int(np.prod(space.shape))
+            self.low = space.low.astype(np.float64).reshape(-1)
+            self.high = space.high.astype(np.float64).reshape(-1)
+        elif isinstance(space, spaces.Discrete):
+            self.kind = "discrete"
+            self.n = int(space.n)
+            self.start = int(space.start)
+            self.dim = 1 if self.n == 2 else self.n
+        else:
+            raise TypeError(f"unsupported action space {space}: pimbrl agents handle Box and Discrete")
+
+    def to_env(self, a: np.ndarray) -> Any:
+        """Environment action(s) for normalised ``a`` of shape ``(dim,)`` or ``(B, dim)``."""
+        a = np.asarray(a)
+        if self.kind == "box":
+            env_a = self.low + (np.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)
+            return env_a.astype(self.space.dtype).reshape(a.shape[:-1] + self.space.shape)
+        if self.n == 2:
+            out = (a[..., 0] >= 0).astype(np.int64) + self.start
+        else:
+            out = np.argmax(a, axis=-1).astype(np.int64) + self.start
+        return int(out) if out.ndim == 0 else out
+
+    def sample(self, rng: np.random.Generator, batch: int | None = None) -> np.ndarray:
+        """Uniform random normalised actions (random warm-up)."""
+        shape = (self.dim,) if batch is None else (batch, self.dim)
+        return rng.uniform(-1.0, 1.0, size=shape).astype(np.float32)

@@ -1,0 +1,110 @@
+"""Evaluation protocol: the deterministic policy on a fixed, held-out set of initial states.
+
+* pimbrl environments: all test episodes run at once in one native vector env, from fixed initial
+  states - the KS test pool (disjoint from the training pool), or states drawn once with ``eval_seed``
+  for the others;
+* other Gymnasium environments: episodes one after another, reset with seeds ``eval_seed + i``.
+
+The same states are used at every evaluation of a run and by every run with the same settings, so
+learning curves of different methods are comparable point by point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from ..envs import KSTask, PhysicsEnv, ks_initial_state_pool
+from ..spaces import ActionAdapter
+
+__all__ = ["EvalResult", "Evaluator"]
+
+Policy = Callable[[np.ndarray], np.ndarray]  # batched observations -> normalised actions
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    returns: np.ndarray  # (episodes,)
+    lengths: np.ndarray  # (episodes,)
+
+    @property
+    def mean(self) -> float:
+        return float(self.returns.mean())
+
+    def summary(self) -> dict[str, float]:
+        r = self.returns
+        return {
+            "return_mean": float(r.mean()),
+            "return_min": float(r.min()),
+            "return_max": float(r.max()),
+            "return_std": float(r.std()),
+            "length_mean": float(self.lengths.mean()),
+            "episodes": int(len(r)),
+        }
+
+
+class Evaluator:
+    """Runs test episodes of ``env_id`` for a policy; the initial states are fixed at construction."""
+
+    def __init__(self, env_id: str, env_kwargs: dict[str, Any], episodes: int, seed: int) -> None:
+        self.env_id = env_id
+        self.episodes = int(episodes)
+        self.seed = int(seed)
+        probe = gym.make(env_id, **env_kwargs)
+        self.adapter = ActionAdapter(probe.action_space)
+        self.native = isinstance(probe.unwrapped, PhysicsEnv)
+        if self.native:
+            task = probe.unwrapped.task
+            if isinstance(task, KSTask):
+                pool = ks_initial_state_pool("test", task.pool_config).states
+                if self.episodes > len(pool):
+                    raise ValueError(f"eval_episodes={self.episodes} exceeds the KS test pool ({len(pool)} states)")
+                self.initial_states = pool[: self.episodes]
+            else:
+                self.initial_states = task.sample_initial_states(np.random.default_rng(self.seed), self.episodes)
+            self.vec = gym.make_vec(
+                env_id,
+                num_envs=self.episodes,
+                vectorization_mode="vector_entry_point",
+                autoreset_mode=AutoresetMode.DISABLED,
+                **env_kwargs,
+            )
+        else:
+            self.env = probe
+
+    def run(self, policy: Policy) -> EvalResult:
+        return self._run_vector(policy) if self.native else self._run_sequential(policy)
+
+    def _run_vector(self, policy: Policy) -> EvalResult:
+        obs, _ = self.vec.reset(seed=self.seed, options={"initial_state": self.initial_states})
+        n = self.episodes
+        returns = np.zeros(n)
+        lengths = np.zeros(n, dtype=np.int64)
+        alive = np.ones(n, dtype=bool)
+        while alive.any():
+            actions = self.adapter.to_env(policy(obs))
+            obs, reward, terminated, truncated, _ = self.vec.step(actions)
+            returns += np.where(alive, reward, 0.0)
+            lengths += alive
+            alive &= ~(terminated | truncated)
+        return EvalResult(returns, lengths)
+
+    def _run_sequential(self, policy: Policy) -> EvalResult:
+        returns, lengths = [], []
+        for i in range(self.episodes):
+            obs, _ = self.env.reset(seed=self.seed + i)
+            total, steps, done = 0.0, 0, False
+            while not done:
+                action = self.adapter.to_env(policy(np.asarray(obs)[None])[0])
+                obs, reward, terminated, truncated, _ = self.env.step(action)
+                total += float(reward)
+                steps += 1
+                done = terminated or truncated
+            returns.append(total)
+            lengths.append(steps)
+        return EvalResult(np.array(returns), np.array(lengths))
