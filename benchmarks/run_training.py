@@ -34,9 +34,9 @@ def main() -> None:
     parser.add_argument("--out-dir", required=True)
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (one thread each)")
     parser.add_argument("--name", default=None, help="name of the recorded result (default: out-dir name)")
-    parser.add_argument("train_args", nargs=argparse.REMAINDER, help="after --: extra arguments for pimbrl train")
-    args = parser.parse_args()
-    extra = [a for a in args.train_args if a != "--"]
+    argv = sys.argv[1:]
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
+    args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
     out = Path(args.out_dir)
     seeds = [int(s) for s in args.seeds.split(",")]
     pending = []

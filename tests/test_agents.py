@@ -97,7 +97,14 @@ def test_td_target_bootstraps_through_truncation(name: str) -> None:
 def test_agent_state_roundtrip_reproduces_updates() -> None:
     rng = np.random.default_rng(0)
     buf = ReplayBuffer(500, 4, 2)
-    buf.add(rng.standard_normal((300, 4)), rng.uniform(-1, 1, (300, 2)), rng.standard_normal(300), rng.standard_normal((300, 4)), np.zeros(300), np.zeros(300))
+    buf.add(
+        rng.standard_normal((300, 4)),
+        rng.uniform(-1, 1, (300, 2)),
+        rng.standard_normal(300),
+        rng.standard_normal((300, 4)),
+        np.zeros(300),
+        np.zeros(300),
+    )
     for name in ("td3", "sac"):
         a = make_agent(name, 4, 2, AgentConfig(hidden=(16,)), seed=3)
         for _ in range(5):

@@ -19,14 +19,71 @@ from pimbrl.training import rundir as rundir_module
 from .conftest import SMALL_POOL
 
 TINY = ["--agent.hidden", "32,32", "--agent.batch-size", "32", "--quiet"]
-POOL = json.dumps({"pool_config": {"n_train": SMALL_POOL.n_train, "n_test": SMALL_POOL.n_test, "batch": SMALL_POOL.batch, "seed": SMALL_POOL.seed}})
+POOL = json.dumps(
+    {
+        "pool_config": {
+            "n_train": SMALL_POOL.n_train,
+            "n_test": SMALL_POOL.n_test,
+            "batch": SMALL_POOL.batch,
+            "seed": SMALL_POOL.seed,
+        }
+    }
+)
 
 SMOKE = {
-    "ks": ["--steps", "40", "--warmup-steps", "20", "--update-after", "20", "--update-every", "20", "--eval-every", "40", "--eval-episodes", "2", "--env-kwargs", POOL],
+    "ks": [
+        "--steps",
+        "40",
+        "--warmup-steps",
+        "20",
+        "--update-after",
+        "20",
+        "--update-every",
+        "20",
+        "--eval-every",
+        "40",
+        "--eval-episodes",
+        "2",
+        "--env-kwargs",
+        POOL,
+    ],
     "burgers": ["--steps", "120", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "60", "--eval-episodes", "4"],
-    "cartpole": ["--steps", "200", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100", "--eval-episodes", "4"],
-    "pendulum": ["--steps", "200", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100", "--eval-episodes", "3"],
-    "Pendulum-v1": ["--steps", "200", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100", "--eval-episodes", "2"],
+    "cartpole": [
+        "--steps",
+        "200",
+        "--warmup-steps",
+        "100",
+        "--update-after",
+        "100",
+        "--eval-every",
+        "100",
+        "--eval-episodes",
+        "4",
+    ],
+    "pendulum": [
+        "--steps",
+        "200",
+        "--warmup-steps",
+        "100",
+        "--update-after",
+        "100",
+        "--eval-every",
+        "100",
+        "--eval-episodes",
+        "3",
+    ],
+    "Pendulum-v1": [
+        "--steps",
+        "200",
+        "--warmup-steps",
+        "100",
+        "--update-after",
+        "100",
+        "--eval-every",
+        "100",
+        "--eval-episodes",
+        "2",
+    ],
 }
 
 
@@ -100,7 +157,20 @@ def test_kill_minus_nine_and_resume_equals_uninterrupted(tmp_path) -> None:
 
 def test_resume_without_checkpoint_restarts_cleanly(tmp_path) -> None:
     run = tmp_path / "run"
-    args = ["pendulum", "--steps", "400", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "200", "--eval-episodes", "2", *TINY]
+    args = [
+        "pendulum",
+        "--steps",
+        "400",
+        "--warmup-steps",
+        "100",
+        "--update-after",
+        "100",
+        "--eval-every",
+        "200",
+        "--eval-episodes",
+        "2",
+        *TINY,
+    ]
     assert main(["train", *args, "--run-dir", str(run)]) == 0
     reference = _table(run, "evaluations.csv")
     # simulate a run killed before its first checkpoint: config written, a torn CSV line, no checkpoint

@@ -59,7 +59,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         try:
             overrides["env_kwargs"] = json.loads(args.env_kwargs)
         except json.JSONDecodeError as exc:
-            raise ValueError(f"--env-kwargs must be a JSON object, e.g. '{{\"reward\": \"physical\"}}': {exc}") from None
+            raise ValueError(f'--env-kwargs must be a JSON object, e.g. \'{{"reward": "physical"}}\': {exc}') from None
     cfg = resolve_config(env_id, overrides, overrides_from_args(args, AgentConfig, prefix="agent."))
     run_dir = args.run_dir or _default_run_dir(env_id, cfg.method, cfg.agent, cfg.seed)
     trainer = Trainer.create(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
@@ -100,7 +100,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
     cfg = trainer.cfg
     episodes = args.episodes or cfg.eval_episodes
-    evaluator = trainer.evaluator if episodes == cfg.eval_episodes else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
+    evaluator = (
+        trainer.evaluator if episodes == cfg.eval_episodes else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
+    )
     result = evaluator.run(lambda o: trainer.agent.act(o, deterministic=True))
     s = result.summary()
     print(
@@ -130,13 +132,15 @@ def _cmd_plot(args: argparse.Namespace) -> int:
             raise ValueError(f"{path} has no evaluations yet")
         cfg = payload["config"]
         label = args.labels[i] if args.labels and i < len(args.labels) else f"{cfg['method']}/{cfg['agent']} seed {cfg['seed']}"
-        col = lambda name: np.array([float(r[name]) for r in rows])  # noqa: E731
-        curves.append((label, col("step"), col("return_mean"), col("return_min"), col("return_max")))
+        cols = {name: np.array([float(r[name]) for r in rows]) for name in ("step", "return_mean", "return_min", "return_max")}
+        curves.append((label, cols["step"], cols["return_mean"], cols["return_min"], cols["return_max"]))
         if cfg.get("threshold") is not None:
             thresholds.add(float(cfg["threshold"]))
     out = Path(args.out)
     envs = {RunDirectory(p).read_config()["config"]["env"] for p in args.run_dirs}
-    plotting.plot_learning_curves(curves, out, title=", ".join(sorted(envs)), threshold=thresholds.pop() if len(thresholds) == 1 else None)
+    plotting.plot_learning_curves(
+        curves, out, title=", ".join(sorted(envs)), threshold=thresholds.pop() if len(thresholds) == 1 else None
+    )
     print(f"figure: {out}")
     return 0
 
@@ -203,7 +207,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"pimbrl {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"pimbrl {args.command}: interrupted; the last checkpoint is intact (`pimbrl resume` continues from it)", file=sys.stderr)
+        print(
+            f"pimbrl {args.command}: interrupted; the last checkpoint is intact (`pimbrl resume` continues from it)",
+            file=sys.stderr,
+        )
         return 130
 
 

@@ -22,14 +22,22 @@ __all__ = ["Agent", "AgentConfig", "frozen", "make_optimizer", "polyak_update", 
 class AgentConfig:
     """Hyperparameters of the off-policy actor-critic agents (defaults: the paper's TD3 table)."""
 
-    hidden: tuple[int, ...] = param((256, 256), "hidden layer sizes of actor and critics", (lambda v: len(v) > 0 and all(h > 0 for h in v), "must be a non-empty list of positive sizes"))
+    hidden: tuple[int, ...] = param(
+        (256, 256),
+        "hidden layer sizes of actor and critics",
+        (lambda v: len(v) > 0 and all(h > 0 for h in v), "must be a non-empty list of positive sizes"),
+    )
     actor_lr: float = param(1e-3, "actor learning rate (Adam)", positive())
     critic_lr: float = param(1e-3, "critic learning rate (Adam)", positive())
     gamma: float = param(0.99, "discount factor", in_range(0.0, 1.0, lo_open=True))
-    polyak: float = param(0.995, "target networks: theta_targ <- polyak theta_targ + (1 - polyak) theta", in_range(0.0, 1.0, hi_open=True))
+    polyak: float = param(
+        0.995, "target networks: theta_targ <- polyak theta_targ + (1 - polyak) theta", in_range(0.0, 1.0, hi_open=True)
+    )
     batch_size: int = param(128, "minibatch size of each update", positive())
     policy_delay: int = param(2, "TD3: actor and target updates every this many critic updates", positive())
-    exploration_noise: float = param(0.1, "TD3/DDPG: Gaussian action noise, as a fraction of each action's half-range", in_range(0.0, 1.0))
+    exploration_noise: float = param(
+        0.1, "TD3/DDPG: Gaussian action noise, as a fraction of each action's half-range", in_range(0.0, 1.0)
+    )
     target_smoothing: bool = param(True, "TD3: target-policy smoothing (Fujimoto et al.); the paper's Algorithm A1 has none")
     target_noise: float = param(0.2, "TD3: std of the target-policy smoothing noise (normalised actions)", in_range(0.0, 1.0))
     noise_clip: float = param(0.5, "TD3: clip of the target-policy smoothing noise", in_range(0.0, 1.0))
@@ -116,13 +124,15 @@ class Agent(ABC):
         An optimizer's ``state_dict`` shares tensors (such as Adam's step counter) with the live optimizer;
         the copy keeps a saved state from changing as training goes on.
         """
-        return copy.deepcopy({
-            "name": self.name,
-            "n_updates": self.n_updates,
-            "rng": self.rng.bit_generator.state,
-            "generator": self.generator.get_state(),
-            "modules": {k: m.state_dict() for k, m in self._modules().items()},
-        })
+        return copy.deepcopy(
+            {
+                "name": self.name,
+                "n_updates": self.n_updates,
+                "rng": self.rng.bit_generator.state,
+                "generator": self.generator.get_state(),
+                "modules": {k: m.state_dict() for k, m in self._modules().items()},
+            }
+        )
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["name"] != self.name:
@@ -146,4 +156,3 @@ class Agent(ABC):
 def make_optimizer(params: Iterable[torch.Tensor], lr: float) -> torch.optim.Optimizer:
     """Adam with the fused kernel (measured 3.5x faster than the per-tensor loop on one CPU thread)."""
     return torch.optim.Adam(params, lr=lr, fused=True)
-

@@ -16,7 +16,9 @@ from torch import nn
 __all__ = ["mlp", "DeterministicActor", "GaussianActor", "CriticEnsemble"]
 
 
-def mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.ReLU, output_activation: type[nn.Module] | None = None) -> nn.Sequential:
+def mlp(
+    sizes: Sequence[int], activation: type[nn.Module] = nn.ReLU, output_activation: type[nn.Module] | None = None
+) -> nn.Sequential:
     """A multilayer perceptron ``sizes[0] -> ... -> sizes[-1]``."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):

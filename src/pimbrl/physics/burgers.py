@@ -14,8 +14,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .base import Array, Physics, superpose
-from .kernels import PDEKernelSpec, build_pde_kernel
+from .base import Array
+from .kernels import PDEKernelSpec
+from .pde import SemilinearPDE
 from .stencil import Stencil
 
 __all__ = ["Burgers", "BURGERS_D2", "BURGERS_UPWIND"]
@@ -29,7 +30,7 @@ BURGERS_UPWIND = Stencil((-2, -1, 0), (0.5, -2.0, 1.5), "Db")
 _NO_WEIGHTS = np.zeros(4)  # the Burgers reward is evaluated on the final state, not accumulated
 
 
-class Burgers(Physics):
+class Burgers(SemilinearPDE):
     """The controlled viscous Burgers system with a sinusoidal reference ``ref_k``.
 
     Args:
@@ -82,28 +83,13 @@ class Burgers(Physics):
         self.linear = BURGERS_D2.scaled(self.nu / self.dx**2, "nu*D2/dx^2")
         #: coefficient of ``Db(u^2)``: ``-(u^2/2)_xi = -Db(u^2) / (2 dx)``
         self.nonlinear_coef = -1.0 / (2.0 * self.dx)
+        self.method = "euler"
         self._kernel: Callable | None = None
 
     # ------------------------------------------------------------------ equation
-    def forcing(self, a: Array) -> Array:
-        """Forcing field ``a1 f1 + a2 f2`` of shape ``(..., n)`` from actions ``(..., 2)``."""
-        return superpose(a, self.actuator_shapes)
-
-    def rhs_forced(self, u: Array, f: Array) -> Array:
-        """``du/dt`` for a given forcing field."""
-        return self.linear.apply(u) + self.nonlinear_coef * BURGERS_UPWIND.apply(u * u) + f
-
-    def rhs(self, u: Array, a: Array) -> Array:
-        return self.rhs_forced(u, self.forcing(a))
-
-    def substep(self, u: Array, a: Array) -> Array:
-        return u + self.dt * self.rhs(u, a)
-
-    def step(self, u: Array, a: Array, substeps: int | None = None) -> Array:
-        f = self.forcing(a)
-        for _ in range(self.substeps if substeps is None else substeps):
-            u = u + self.dt * self.rhs_forced(u, f)
-        return u
+    def upwind(self, u: Array) -> Array:
+        """Raw backward difference ``Db(u^2)`` (upwind while ``u > 0``; divide by dx)."""
+        return BURGERS_UPWIND.apply(u * u)
 
     # ------------------------------------------------------------------ task
     def reference(self, k: Array | int) -> Array | float:
@@ -137,9 +123,7 @@ class Burgers(Physics):
         )
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self._kernel is None:
-            self._kernel = build_pde_kernel(self.kernel_spec())
-        u = np.ascontiguousarray(u, dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64)
         a = np.asarray(a, dtype=np.float64)
-        u_next, _, _ = self._kernel(u, np.ascontiguousarray(a), self.actuator_shapes, self.dt, self.substeps, False, _NO_WEIGHTS)
+        u_next, _, _ = self.run_kernel(u, a, False, _NO_WEIGHTS)
         return u_next, self.reward(u, a, u_next, np.asarray(k))

@@ -172,7 +172,9 @@ def advance(u0, actions, shapes, dt, nsub, accumulate, weights):
             terms[b, 1] = s_n * norm
             terms[b, 2] = s_c * norm
             terms[b, 3] = s_f * norm
-            reward[b] = -(terms[b, 0] * weights[0] + terms[b, 1] * weights[1] + terms[b, 2] * weights[2] + terms[b, 3] * weights[3])
+            reward[b] = -(
+                terms[b, 0] * weights[0] + terms[b, 1] * weights[1] + terms[b, 2] * weights[2] + terms[b, 3] * weights[3]
+            )
     return out, terms, reward
 """
 

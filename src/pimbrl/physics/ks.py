@@ -17,8 +17,9 @@ from typing import Literal
 
 import numpy as np
 
-from .base import Array, Physics, superpose, xp_of
-from .kernels import PDEKernelSpec, build_pde_kernel
+from .base import Array, xp_of
+from .kernels import PDEKernelSpec
+from .pde import SemilinearPDE
 from .stencil import Stencil, apply_upwind
 
 __all__ = ["KuramotoSivashinsky", "KS_D1", "KS_D2", "KS_D4", "KS_UPWIND_BACKWARD", "KS_UPWIND_FORWARD"]
@@ -37,7 +38,7 @@ KS_D1 = Stencil.centered((-1 / 60, 3 / 20, -3 / 4, 0.0, 3 / 4, -3 / 20, 1 / 60),
 RewardMode = Literal["code", "physical"]
 
 
-class KuramotoSivashinsky(Physics):
+class KuramotoSivashinsky(SemilinearPDE):
     """The controlled KS system.
 
     Args:
@@ -106,41 +107,13 @@ class KuramotoSivashinsky(Physics):
             self.reward_weights = np.array([1.0, 1.0, 0.0, 1.0])
         else:
             self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
+        self.method = "rk4"
         self._kernel: Callable | None = None  # compiled on first use
 
     # ------------------------------------------------------------------ equation
-    def forcing(self, a: Array) -> Array:
-        """Forcing field ``f = sum_i a_i g_i(x)`` of shape ``(..., n)`` from actions ``(..., 4)``."""
-        return superpose(a, self.actuator_shapes)
-
     def upwind(self, u: Array) -> Array:
         """Raw sign-switched upwind difference ``Dup(u^2)`` (divide by dx for a derivative of u^2)."""
         return apply_upwind(KS_UPWIND_BACKWARD, KS_UPWIND_FORWARD, u * u, u)
-
-    def rhs_forced(self, u: Array, f: Array) -> Array:
-        """``du/dt`` for a given forcing field ``f`` (broadcast against ``u``)."""
-        return self.linear.apply(u) + self.nonlinear_coef * self.upwind(u) + f
-
-    def rhs(self, u: Array, a: Array) -> Array:
-        return self.rhs_forced(u, self.forcing(a))
-
-    def substep_forced(self, u: Array, f: Array) -> Array:
-        """One classic RK4 step of length dt with forcing field ``f``."""
-        dt = self.dt
-        k1 = self.rhs_forced(u, f)
-        k2 = self.rhs_forced(u + 0.5 * dt * k1, f)
-        k3 = self.rhs_forced(u + 0.5 * dt * k2, f)
-        k4 = self.rhs_forced(u + dt * k3, f)
-        return u + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-    def substep(self, u: Array, a: Array) -> Array:
-        return self.substep_forced(u, self.forcing(a))
-
-    def step(self, u: Array, a: Array, substeps: int | None = None) -> Array:
-        f = self.forcing(a)
-        for _ in range(self.substeps if substeps is None else substeps):
-            u = self.substep_forced(u, f)
-        return u
 
     # ------------------------------------------------------------------ reward
     def reward_terms(self, u: Array, f: Array) -> Array:
@@ -179,11 +152,7 @@ class KuramotoSivashinsky(Physics):
     def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Like :meth:`advance` but also returns the step-averaged reward integrands ``(B, 4)``:
         ``(u_next, terms, reward)``."""
-        if self._kernel is None:
-            self._kernel = build_pde_kernel(self.kernel_spec())
-        u = np.ascontiguousarray(u, dtype=np.float64)
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        return self._kernel(u, a, self.actuator_shapes, self.dt, self.substeps, True, self.reward_weights)
+        return self.run_kernel(u, a, True, self.reward_weights)
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u_next, _, reward = self.advance_terms(u, a)

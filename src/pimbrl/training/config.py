@@ -56,7 +56,13 @@ PRESETS: dict[str, dict[str, Any]] = {
         "eval_every": 250,
         "threshold": 200.0,
     },
-    "pimbrl/Pendulum-v0": {"total_steps": 15_000, "warmup_steps": 1_000, "update_after": 1_000, "eval_every": 500, "threshold": -200.0},
+    "pimbrl/Pendulum-v0": {
+        "total_steps": 15_000,
+        "warmup_steps": 1_000,
+        "update_after": 1_000,
+        "eval_every": 500,
+        "threshold": -200.0,
+    },
     "Pendulum-v1": {"total_steps": 15_000, "warmup_steps": 1_000, "update_after": 1_000, "eval_every": 500, "threshold": -200.0},
     "pimbrl/Burgers-v0": {
         "total_steps": 3_000,
@@ -80,7 +86,9 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def resolve_config(env: str, overrides: dict[str, Any] | None = None, agent_overrides: dict[str, Any] | None = None) -> TrainConfig:
+def resolve_config(
+    env: str, overrides: dict[str, Any] | None = None, agent_overrides: dict[str, Any] | None = None
+) -> TrainConfig:
     """Defaults, then the preset of ``env``, then ``overrides`` / ``agent_overrides``; validated."""
     preset = dict(PRESETS.get(env, {}))
     agent_fields = dict(preset.pop("agent_config", {}))

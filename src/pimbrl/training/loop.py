@@ -65,7 +65,9 @@ class Trainer:
         self.obs_dim = int(np.prod(space.shape))
         self.adapter = ActionAdapter(self.env.action_space)
         self.agent = make_agent(cfg.agent, self.obs_dim, self.adapter.dim, cfg.agent_config, cfg.seed)
-        self.buffer = ReplayBuffer(min(cfg.buffer_size, cfg.total_steps), self.obs_dim, self.adapter.dim, extras=self.buffer_extras())
+        self.buffer = ReplayBuffer(
+            min(cfg.buffer_size, cfg.total_steps), self.obs_dim, self.adapter.dim, extras=self.buffer_extras()
+        )
         self.rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(0,)))
         self.evaluator = Evaluator(cfg.env, cfg.env_kwargs, cfg.eval_episodes, cfg.eval_seed)
         self.show_progress = progress
@@ -203,7 +205,9 @@ class Trainer:
         self.last_eval = result.mean
         if self.cfg.threshold is not None and self.first_threshold_step is None and result.mean >= self.cfg.threshold:
             self.first_threshold_step = self.t
-        self._tb_scalars({"eval/return_mean": result.mean, "eval/return_min": row["return_min"], "eval/return_max": row["return_max"]})
+        self._tb_scalars(
+            {"eval/return_mean": result.mean, "eval/return_min": row["return_min"], "eval/return_max": row["return_max"]}
+        )
         self.progress.update(self.t, eval_return=result.mean)
         self.progress.message(
             f"step {self.t:>8,d}  eval return {result.mean:10.3f} (min {row['return_min']:.3f}, max {row['return_max']:.3f})  "
@@ -213,7 +217,9 @@ class Trainer:
 
     def end_episode(self) -> None:
         self.episode += 1
-        self.run_dir.episodes.append({"step": self.t, "episode": self.episode, "return": self.episode_return, "length": self.episode_length})
+        self.run_dir.episodes.append(
+            {"step": self.t, "episode": self.episode, "return": self.episode_return, "length": self.episode_length}
+        )
         self._tb_scalars({"train/episode_return": self.episode_return})
         self.episode_return = 0.0
         self.episode_length = 0
@@ -239,7 +245,16 @@ class Trainer:
         return row
 
     def metric_columns(self) -> list[str]:
-        return ["step", "wall_s", "steps_per_s", "episodes", "agent_updates", "update_to_data", "real_buffer", *self.metric_names()]
+        return [
+            "step",
+            "wall_s",
+            "steps_per_s",
+            "episodes",
+            "agent_updates",
+            "update_to_data",
+            "real_buffer",
+            *self.metric_names(),
+        ]
 
     def metric_names(self) -> list[str]:
         names = ["agent/critic_loss", "agent/q_mean", "agent/actor_loss"]

@@ -145,7 +145,17 @@ def _fmt(v: Any) -> str:
 class RunDirectory:
     """A training run's directory (see the module docstring for its layout)."""
 
-    EVAL_COLUMNS = ["step", "return_mean", "return_min", "return_max", "return_std", "length_mean", "episodes", "updates", "wall_s"]
+    EVAL_COLUMNS = [
+        "step",
+        "return_mean",
+        "return_min",
+        "return_max",
+        "return_std",
+        "length_mean",
+        "episodes",
+        "updates",
+        "wall_s",
+    ]
     EPISODE_COLUMNS = ["step", "episode", "return", "length"]
 
     def __init__(self, path: str | os.PathLike) -> None:
@@ -204,5 +214,7 @@ class RunDirectory:
             raise FileNotFoundError(f"no checkpoint in {self.path} (expected {self.checkpoint_path})")
         state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
         if state.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint {self.checkpoint_path} has version {state.get('version')}, expected {CHECKPOINT_VERSION}")
+            raise ValueError(
+                f"checkpoint {self.checkpoint_path} has version {state.get('version')}, expected {CHECKPOINT_VERSION}"
+            )
         return state
