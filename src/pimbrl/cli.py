@@ -145,6 +145,20 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_model_eval(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .experiments import MODEL_EVAL_DEFAULTS, ModelEvalConfig, run_model_eval
+    from .simulate import resolve_env_id
+
+    env_id = resolve_env_id(args.env)
+    fields = {**MODEL_EVAL_DEFAULTS.get(env_id, {}), **overrides_from_args(args, ModelEvalConfig)}
+    cfg = dataclasses.replace(ModelEvalConfig(), **fields)
+    run_model_eval(env_id, args.run_dir, cfg, log=lambda m: print(m, flush=True))
+    print(f"wrote {Path(args.run_dir) / 'model_errors.csv'}, summary.json and model_errors.png")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -193,6 +207,17 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--out", default="curves.png")
     pl.add_argument("--labels", nargs="*", default=None, help="one label per run directory")
     pl.set_defaults(func=_cmd_plot)
+
+    from .experiments import ModelEvalConfig
+
+    me = sub.add_parser(
+        "model-eval",
+        help="train a data-only and a physics-informed model on the same random-policy data; compare their errors",
+    )
+    me.add_argument("env", help="ks | burgers | cartpole | pendulum")
+    me.add_argument("--run-dir", required=True, help="output directory (model_errors.csv, summary.json, model_errors.png)")
+    add_arguments(me, ModelEvalConfig)
+    me.set_defaults(func=_cmd_model_eval)
     return parser
 
 

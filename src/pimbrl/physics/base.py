@@ -95,6 +95,10 @@ class Physics(ABC):
             u = self.substep(u, a)
         return xp.stack(states, -2)
 
+    def canonical(self, u: Array) -> Array:
+        """The canonical representative of a state (systems with angles override this to wrap them)."""
+        return u
+
     def state_difference(self, u1: Array, u0: Array) -> Array:
         """``u1 - u0`` in the state's own geometry (systems with angles override this to wrap them)."""
         return u1 - u0

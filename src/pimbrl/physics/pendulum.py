@@ -66,6 +66,11 @@ class Pendulum(Physics):
         new_theta = theta + new_theta_dot * self.dt
         return xp.stack([new_theta, new_theta_dot], -1)
 
+    def canonical(self, u: Array) -> Array:
+        """The state with ``theta`` wrapped into ``[-pi, pi)`` (the dynamics are 2 pi-periodic in theta)."""
+        xp = xp_of(u)
+        return xp.stack([wrap_angle(u[..., 0]), u[..., 1]], -1)
+
     def state_difference(self, u1: Array, u0: Array) -> Array:
         """Difference with the angle wrapped into ``[-pi, pi)``."""
         xp = xp_of(u1)

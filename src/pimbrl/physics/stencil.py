@@ -4,7 +4,8 @@ A :class:`Stencil` is a coefficient table: ``(D u)_j = sum_k c_k * u_{j + o_k}``
 It is the single source of truth for a discrete operator. The same table is applied
 
 * to NumPy arrays (``np.roll`` sums: the plain reference implementation),
-* to torch tensors (one ``conv1d`` with circular padding: batched and differentiable),
+* to torch tensors (a matmul with the dense circulant matrix on small grids, shifted slices on large
+  ones: batched and differentiable),
 * inside the compiled simulator kernels (which read :meth:`Stencil.dense_taps`),
 
 and its Fourier symbol (:meth:`Stencil.symbol`) gives the exact eigenvalues of the circulant operator.
@@ -19,7 +20,6 @@ from typing import TypeVar
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
 
@@ -122,13 +122,32 @@ class Stencil:
         return out
 
     def _apply_torch(self, u: torch.Tensor) -> torch.Tensor:
+        n = u.shape[-1]
+        if n <= DENSE_MAX_POINTS:
+            # one matmul with the circulant matrix: on a CPU this is several times faster, forward and
+            # backward, than conv1d or shifted slices for the grid sizes used here
+            return u @ _dense_transposed((self,), n, u.dtype, u.device)
         h = self.halo
-        weight = torch.as_tensor(self.dense_taps(h), dtype=u.dtype, device=u.device).view(1, 1, -1)
-        lead = u.shape[:-1]
-        flat = u.reshape(-1, 1, u.shape[-1])
-        padded = F.pad(flat, (h, h), mode="circular")
-        # conv1d is a cross-correlation: out[j] = sum_k w[k] * padded[j + k] = sum_o c_o * u[j + o]
-        return F.conv1d(padded, weight).reshape(*lead, u.shape[-1])
+        padded = torch.cat([u[..., n - h :], u, u[..., :h]], dim=-1)
+        out = self.coeffs[0] * padded[..., h + self.offsets[0] : h + self.offsets[0] + n]
+        for o, c in zip(self.offsets[1:], self.coeffs[1:]):
+            out = out + c * padded[..., h + o : h + o + n]
+        return out
+
+
+#: grids up to this size apply stencils in torch as dense circulant matmuls; larger ones by shifted slices
+DENSE_MAX_POINTS = 256
+_DENSE_CACHE: dict[tuple, torch.Tensor] = {}
+
+
+def _dense_transposed(stencils: tuple[Stencil, ...], n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``[S_1^T | S_2^T | ...]`` of shape ``(n, k n)``: ``u @ it`` applies every stencil to the rows of ``u``."""
+    key = (stencils, n, dtype, device)
+    mat = _DENSE_CACHE.get(key)
+    if mat is None:
+        mat = torch.as_tensor(np.concatenate([s.matrix(n).T for s in stencils], axis=1), dtype=dtype, device=device)
+        _DENSE_CACHE[key] = mat
+    return mat
 
 
 def apply_upwind(backward: Stencil, forward: Stencil, w: ArrayT, u: ArrayT) -> ArrayT:
@@ -138,5 +157,9 @@ def apply_upwind(backward: Stencil, forward: Stencil, w: ArrayT, u: ArrayT) -> A
     constant, so gradients flow through both branches' coefficients but not through the switch.
     """
     if isinstance(u, torch.Tensor):
+        n = u.shape[-1]
+        if n <= DENSE_MAX_POINTS:  # both differences in one matmul
+            both = w @ _dense_transposed((backward, forward), n, w.dtype, w.device)
+            return torch.where(u >= 0, both[..., :n], both[..., n:])
         return torch.where(u >= 0, backward.apply(w), forward.apply(w))
     return np.where(u >= 0, backward.apply(w), forward.apply(w))

@@ -1,0 +1,243 @@
+"""Model-error comparison: a data-only and a physics-informed model trained on the same buffer.
+
+1. Collect ``transitions`` real transitions with a uniformly random policy from the task's own initial
+   states (the *in-sample* distribution); hold out ``test_transitions`` of them.
+2. Collect ``test_transitions`` transitions from *another* distribution (out-of-sample, per environment:
+   see :data:`OUT_OF_SAMPLE`).
+3. Train two models from the same initialisation for the same number of gradient steps: ``data`` with
+   ``L_D`` only; ``physics`` with ``L_D + w_E L_E``, where ``L_E`` is applied to unlabelled pairs: the
+   training states with fresh random actions, and states the model itself imagines from them (short
+   rollouts, refreshed during training), as PiMBRL does with its imagined buffer.
+4. Write ``model_errors.csv`` (``model, split, mse``: one row per test transition), ``summary.json`` and
+   ``model_errors.png`` (histograms of log10 MSE, in- and out-of-sample).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from ..config import non_negative, param, positive, validate
+from ..envs import PhysicsEnv, Task, ks_initial_state_pool
+from ..models import ModelTrainer, PhysicsResidual, TransitionData, make_model
+from ..models.residual import Scheme
+from ..training.rundir import atomic_write_bytes
+
+__all__ = ["ModelEvalConfig", "run_model_eval", "collect_transitions", "OUT_OF_SAMPLE"]
+
+
+@dataclass(frozen=True)
+class ModelEvalConfig:
+    """Settings of `pimbrl model-eval` (defaults per environment in :data:`DEFAULTS`)."""
+
+    transitions: int = param(2_000, "real transitions collected with a random policy (training + in-sample test)", positive())
+    test_transitions: int = param(500, "held-out in-sample and out-of-sample test transitions (each)", positive())
+    steps: int = param(2_000, "gradient steps of each model", positive())
+    batch_size: int = param(256, "batch size of the data and of the physics loss", positive())
+    lr: float = param(1e-3, "Adam learning rate", positive())
+    n_intermediate: int = param(5, "PDE models: intermediate states per control step", positive())
+    scheme: str = param("etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'"))
+    physics_weight: float = param(1.0, "w_E, weight of the physics loss", non_negative())
+    imagined_length: int = param(3, "length of the imagined rollouts that supply unlabelled states", non_negative())
+    refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", positive())
+    seed: int = param(0, "seed of data collection, initialisation and batches", non_negative())
+    threads: int = param(1, "torch threads", positive())
+
+
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "pimbrl/KuramotoSivashinsky-v0": {"transitions": 6_000, "steps": 3_000},
+    "pimbrl/Burgers-v0": {"transitions": 1_200, "steps": 3_000},
+    "pimbrl/Pendulum-v0": {"transitions": 2_000, "steps": 3_000},
+    "pimbrl/CartPole-v0": {"transitions": 1_000, "steps": 3_000},
+}
+
+
+def _ks_forced_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
+    """KS test-pool states driven 20 control steps by a strong alternating actuation: far from the chaotic set."""
+    pool = ks_initial_state_pool("test", getattr(task, "pool_config", None), verbose=False).states
+    u = pool[rng.integers(len(pool), size=n)]
+    a = np.tile(np.array([0.5, -0.5, 0.5, -0.5]), (n, 1)) * rng.choice([-1.0, 1.0], size=(n, 1))
+    for _ in range(20):
+        u, _ = task.physics.advance(u, a, np.zeros(n))
+    return u
+
+
+def _burgers_large_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Burgers initial shapes with twice the amplitude and twice the offset."""
+    x = task.physics.x[None, :]  # type: ignore[attr-defined]
+    c = rng.uniform(0, 1, (n, 1))
+    return 0.4 * c * np.exp(-25 * (x - 0.5) ** 2) + 0.4 * (1 - c) * np.sin(4 * np.pi * x) + 0.4
+
+
+def _pendulum_fast_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Pendulum states uniform over the whole state space, up to the speed limit."""
+    return np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-8.0, 8.0, n)], axis=1)
+
+
+def _cartpole_wide_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Cart-Pole states far from upright rest: larger positions, speeds and angles (still inside the bounds)."""
+    return rng.uniform([-2.0, -2.0, -0.18, -2.0], [2.0, 2.0, 0.18, 2.0], (n, 4))
+
+
+#: initial-state samplers of the out-of-sample test distributions
+OUT_OF_SAMPLE: dict[str, Callable[[Task, np.random.Generator, int], np.ndarray]] = {
+    "pimbrl/KuramotoSivashinsky-v0": _ks_forced_states,
+    "pimbrl/Burgers-v0": _burgers_large_states,
+    "pimbrl/Pendulum-v0": _pendulum_fast_states,
+    "pimbrl/CartPole-v0": _cartpole_wide_states,
+}
+
+
+def _random_env_actions(task: Task, rng: np.random.Generator, n: int) -> Any:
+    space = task.action_space
+    if isinstance(space, gym.spaces.Discrete):
+        return rng.integers(space.n, size=n) + int(space.start)
+    return rng.uniform(space.low, space.high, size=(n, *space.shape)).astype(space.dtype)
+
+
+def collect_transitions(
+    task: Task,
+    rng: np.random.Generator,
+    n: int,
+    initial_states: Callable[[np.random.Generator, int], np.ndarray],
+    batch: int = 64,
+    max_steps: int | None = None,
+) -> TransitionData:
+    """``n`` physical transitions under a uniformly random policy, ``batch`` environments at a time."""
+    horizon = max_steps or task.max_episode_steps
+    u = initial_states(rng, batch)
+    k = np.zeros(batch, dtype=np.int64)
+    states, actions, nexts = [], [], []
+    count = 0
+    while count < n:
+        a_phys = task.physical_action(_random_env_actions(task, rng, batch), batch)
+        out = task.advance(u, k, a_phys)
+        ok = ~out.diverged
+        states.append(u[ok])
+        actions.append(a_phys[ok])
+        nexts.append(out.state[ok])
+        count += int(ok.sum())
+        u = out.state
+        k = k + 1
+        done = out.terminated | (k >= horizon)
+        if done.any():
+            u[done] = initial_states(rng, int(done.sum()))
+            k[done] = 0
+    cat = lambda parts: torch.as_tensor(np.concatenate(parts)[:n], dtype=torch.float32)  # noqa: E731
+    canonical = task.physics.canonical
+    return TransitionData(cat([canonical(s) for s in states]), cat(actions), cat([canonical(s) for s in nexts]))
+
+
+def _imagined_states(model: torch.nn.Module, task: Task, seeds: TransitionData, length: int, rng: np.random.Generator) -> torch.Tensor:
+    """States the model reaches from ``seeds`` in up to ``length`` steps under random actions."""
+    out = [seeds.state]
+    u = seeds.state
+    with torch.no_grad():
+        for _ in range(length):
+            a = torch.as_tensor(task.physical_action(_random_env_actions(task, rng, len(u)), len(u)), dtype=torch.float32)
+            u = model.predict_next(u, a)
+            keep = torch.as_tensor(~task.physics.diverged(u.double().numpy()))
+            u = u[keep]
+            out.append(u)
+    return torch.cat(out)
+
+
+def _unlabelled(states: torch.Tensor, task: Task, rng: np.random.Generator) -> TransitionData:
+    a = task.physical_action(_random_env_actions(task, rng, len(states)), len(states))
+    return TransitionData(states, torch.as_tensor(a, dtype=torch.float32))
+
+
+def run_model_eval(env_id: str, run_dir: str | Path, config: ModelEvalConfig | None = None, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run the comparison for ``env_id`` and write its outputs into ``run_dir``; returns the summary."""
+    cfg = config or ModelEvalConfig(**DEFAULTS.get(env_id, {}))
+    validate(cfg)
+    if env_id not in OUT_OF_SAMPLE:
+        raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
+    torch.set_num_threads(cfg.threads)
+    out_dir = Path(run_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = gym.make(env_id)
+    assert isinstance(env.unwrapped, PhysicsEnv)
+    task = env.unwrapped.task
+    physics = task.physics
+    rng = np.random.default_rng(cfg.seed)
+    t0 = time.perf_counter()
+
+    in_data = collect_transitions(task, rng, cfg.transitions + cfg.test_transitions, task.sample_initial_states)
+    perm = torch.from_numpy(rng.permutation(len(in_data)))
+    train, test_in = in_data.take(perm[cfg.test_transitions :]), in_data.take(perm[: cfg.test_transitions])
+    oos = OUT_OF_SAMPLE[env_id]
+    test_out = collect_transitions(task, rng, cfg.test_transitions, lambda g, n: oos(task, g, n), max_steps=10)
+    log(f"{env_id}: {len(train)} training, {len(test_in)} in-sample and {len(test_out)} out-of-sample test transitions")
+
+    models = {}
+    summary: dict[str, Any] = {"env": env_id, "config": dataclasses.asdict(cfg), "train_s": {}}
+    for name in ("data", "physics"):
+        torch.manual_seed(cfg.seed)
+        model = make_model(physics, n_intermediate=cfg.n_intermediate)
+        residual = PhysicsResidual(physics, model.n_intermediate, _scheme(cfg.scheme)) if name == "physics" else None
+        trainer = ModelTrainer(model, residual, lr=cfg.lr, weight_physics=cfg.physics_weight)
+        trainer.ensure_normalization(train)
+        batch_rng = np.random.default_rng(cfg.seed + 1)
+        start = time.perf_counter()
+        unlabelled = None
+        done = 0
+        while done < cfg.steps:
+            chunk = min(cfg.refresh_every, cfg.steps - done)
+            if residual is not None:
+                seeds = train.sample(min(len(train), 1024), batch_rng)
+                unlabelled = _unlabelled(_imagined_states(model, task, seeds, cfg.imagined_length, batch_rng), task, batch_rng)
+            metrics = trainer.fit(chunk, cfg.batch_size, batch_rng, labelled=train, unlabelled=unlabelled)
+            done += chunk
+            log(f"  {name:7s} step {done:5d}: " + ", ".join(f"{k} {v:.3e}" for k, v in metrics.items()))
+        summary["train_s"][name] = time.perf_counter() - start
+        models[name] = trainer
+
+    rows = []
+    for name, trainer in models.items():
+        for split, data in (("in", test_in), ("out", test_out)):
+            mse = trainer.per_transition_mse(data)
+            rows += [(name, split, float(v)) for v in mse]
+            summary[f"{name}_{split}"] = {"mean": float(mse.mean()), "median": float(np.median(mse)), "p90": float(np.percentile(mse, 90))}
+    csv_text = "model,split,mse\n" + "".join(f"{m},{s},{v!r}\n" for m, s, v in rows)
+    atomic_write_bytes(out_dir / "model_errors.csv", csv_text.encode())
+    summary["wall_s"] = time.perf_counter() - t0
+    atomic_write_bytes(out_dir / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
+    _plot(rows, out_dir / "model_errors.png", env_id)
+    for split in ("in", "out"):
+        d, p = summary[f"data_{split}"], summary[f"physics_{split}"]
+        log(f"  {split:3s}-sample MSE  data-only: mean {d['mean']:.3e} median {d['median']:.3e}   physics-informed: mean {p['mean']:.3e} median {p['median']:.3e}")
+    return summary
+
+
+def _scheme(name: str) -> Scheme:
+    return "solver" if name == "solver" else "etd"
+
+
+def _plot(rows: list[tuple[str, str, float]], path: Path, title: str) -> None:
+    from ..plotting import plt, save_figure
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, split in zip(axes, ("in", "out")):
+        vals = {m: np.log10(np.maximum([v for mm, s, v in rows if mm == m and s == split], 1e-16)) for m in ("data", "physics")}
+        lo = min(v.min() for v in vals.values())
+        hi = max(v.max() for v in vals.values())
+        bins = np.linspace(lo, hi if hi > lo else lo + 1, 40)
+        for m, color in (("data", "tab:orange"), ("physics", "tab:blue")):
+            label = f"{'data-only (MBRL)' if m == 'data' else 'physics-informed (PiMBRL)'}: median {10 ** np.median(vals[m]):.2e}"
+            ax.hist(vals[m], bins=bins, alpha=0.55, color=color, label=label)
+        ax.set_title(f"{title}: {'in-sample' if split == 'in' else 'out-of-sample'}")
+        ax.set_xlabel("log10 next-state MSE")
+        ax.legend(fontsize=8)
+    axes[0].set_ylabel("test transitions")
+    fig.tight_layout()
+    save_figure(fig, path)

@@ -1,0 +1,132 @@
+"""An imagined environment: batched rollouts of a learned model.
+
+Rewards and terminations come from the same :class:`~pimbrl.physics.Physics` methods the simulator uses,
+evaluated on the predicted states (the KS reward integrates over the model's intermediate states);
+observations from the same :class:`~pimbrl.envs.Task`. Each imagined step is one batched model call for
+all rollouts. A rollout whose prediction is non-finite or leaves the physics' divergence bound stops
+there, and that step is not returned, so no NaN or runaway state reaches a replay buffer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..envs import Task
+from ..spaces import ActionAdapter
+from .networks import TransitionModel
+
+__all__ = ["ImaginedBatch", "ModelEnv"]
+
+Policy = Callable[[np.ndarray], np.ndarray]  # observations (B, obs_dim) -> normalised actions (B, act_dim)
+
+
+@dataclass
+class ImaginedBatch:
+    """Imagined transitions (NumPy), ready for a replay buffer."""
+
+    obs: np.ndarray
+    action: np.ndarray  # normalised agent actions
+    reward: np.ndarray
+    next_obs: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    state: np.ndarray
+    next_state: np.ndarray
+    phys_action: np.ndarray
+    k: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.reward)
+
+    @staticmethod
+    def concat(parts: list[ImaginedBatch]) -> ImaginedBatch:
+        fields = ImaginedBatch.__dataclass_fields__
+        return ImaginedBatch(**{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields})
+
+
+class ModelEnv:
+    """Rolls a transition model forward from given states under a policy.
+
+    Args:
+        model: the learned transition model.
+        task: the environment's task (observation, action mapping, episode length).
+        adapter: maps normalised agent actions to environment actions.
+    """
+
+    def __init__(self, model: TransitionModel, task: Task, adapter: ActionAdapter) -> None:
+        self.model = model
+        self.task = task
+        self.physics = task.physics
+        self.adapter = adapter
+        self.model_calls = 0
+
+    @torch.no_grad()
+    def step(self, state: np.ndarray, k: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One imagined control step for a batch: ``(next_state, reward, terminated, valid, phys_action)``.
+
+        ``valid`` is False where the prediction blew up (those rows must be discarded).
+        """
+        phys_a = self.task.physical_action(self.adapter.to_env(action), len(state))
+        path = self.model(torch.as_tensor(state, dtype=torch.float32), torch.as_tensor(phys_a, dtype=torch.float32))
+        self.model_calls += 1
+        path_np = path.double().numpy()
+        nxt = path_np[:, -1]
+        valid = ~self.physics.diverged(nxt)
+        # states at the start of each of the model's sub-steps: u_t, v_1, ..., v_{N-1}
+        starts = np.concatenate([state[:, None, :], path_np[:, :-1]], axis=1) if path_np.shape[1] > 1 else None
+        with np.errstate(all="ignore"):
+            reward = np.asarray(self.physics.reward(state, phys_a, nxt, k, starts), dtype=np.float64) + np.zeros(len(state))
+            terminated = np.asarray(self.physics.terminated(nxt), dtype=bool)
+        valid &= np.isfinite(reward)
+        return nxt, reward, terminated, valid, phys_a
+
+    def rollout(self, state: np.ndarray, k: np.ndarray, policy: Policy, length: int) -> ImaginedBatch:
+        """Up to ``length`` imagined steps from each start state (``(B, n)`` physical states, steps ``k``)."""
+        state = np.asarray(state, dtype=np.float64)
+        k = np.asarray(k, dtype=np.int64).copy()
+        horizon = self.task.max_episode_steps
+        parts: list[ImaginedBatch] = []
+        alive = np.ones(len(state), dtype=bool)
+        for _ in range(length):
+            if not alive.any():
+                break
+            s, kk = state[alive], k[alive]
+            obs = self.task.observe(s, kk)
+            action = np.asarray(policy(obs), dtype=np.float32)
+            nxt, reward, terminated, valid, phys_a = self.step(s, kk, action)
+            truncated = (kk + 1) >= horizon
+            keep = valid
+            parts.append(
+                ImaginedBatch(
+                    obs=obs[keep],
+                    action=action[keep],
+                    reward=reward[keep],
+                    next_obs=self.task.observe(nxt[keep], kk[keep] + 1),
+                    terminated=terminated[keep],
+                    truncated=truncated[keep] & ~terminated[keep],
+                    state=s[keep],
+                    next_state=nxt[keep],
+                    phys_action=phys_a[keep],
+                    k=kk[keep],
+                )
+            )
+            idx = np.flatnonzero(alive)
+            state[idx[valid]] = nxt[valid]
+            k[idx] += 1
+            alive[idx] = valid & ~terminated & ~truncated
+        if not parts:
+            return ImaginedBatch.concat([self._empty()])
+        return ImaginedBatch.concat(parts)
+
+    def _empty(self) -> ImaginedBatch:
+        n, m = self.physics.state_dim, self.physics.action_dim
+        obs_dim = int(np.prod(self.task.observation_space.shape))
+        z = np.zeros
+        return ImaginedBatch(
+            z((0, obs_dim), np.float32), z((0, self.adapter.dim), np.float32), z(0), z((0, obs_dim), np.float32),
+            z(0, bool), z(0, bool), z((0, n)), z((0, n)), z((0, m)), z(0, np.int64),
+        )  # fmt: skip

@@ -1,0 +1,164 @@
+"""Transition models: an MLP for the ODE systems, a convolutional encoder + LSTM + MLP decoder emitting
+intermediate states for the PDE systems (the paper's architecture, Fig. 3).
+
+A model maps a physical state ``u_t`` ``(B, state_dim)`` and a physical action ``a_t`` ``(B, action_dim)`` to
+``N`` states at times ``t + i/N`` (``(B, N, state_dim)``); the last one is the prediction of ``u_{t+1}``.
+Actions are rescaled to ``[-1, 1]`` with the physics' action bounds; states are normalised with
+statistics fitted once from data (:meth:`TransitionModel.fit_normalization`). By default the networks
+predict increments from ``u_t`` (``predict_increment``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from ..physics import Physics
+from ..physics.pde import SemilinearPDE
+
+__all__ = ["TransitionModel", "MLPModel", "ConvLSTMModel", "make_model"]
+
+
+class TransitionModel(nn.Module):
+    """Base class: action scaling, normalisation buffers and the output convention."""
+
+    n_intermediate: int = 1
+
+    def __init__(self, physics: Physics, per_feature: bool) -> None:
+        super().__init__()
+        self.physics = physics
+        dim = physics.state_dim if per_feature else 1
+        self.per_feature = per_feature
+        self.register_buffer("action_low", torch.as_tensor(physics.action_low, dtype=torch.float32))
+        self.register_buffer("action_high", torch.as_tensor(physics.action_high, dtype=torch.float32))
+        self.register_buffer("state_mean", torch.zeros(dim))
+        self.register_buffer("state_std", torch.ones(dim))
+        self.register_buffer("delta_std", torch.ones(dim))
+        self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
+
+    def scale_action(self, a: torch.Tensor) -> torch.Tensor:
+        return 2.0 * (a - self.action_low) / (self.action_high - self.action_low) - 1.0
+
+    @torch.no_grad()
+    def fit_normalization(self, u: torch.Tensor, u_next: torch.Tensor) -> None:
+        """Set the state and increment statistics from data (per feature, or one scalar for fields)."""
+        delta = self.physics.state_difference(u_next, u)
+        dims = 0 if self.per_feature else (0, 1)
+        self.state_mean.copy_(u.mean(dim=dims).reshape(self.state_mean.shape))
+        self.state_std.copy_(u.std(dim=dims).clamp_min(1e-6).reshape(self.state_std.shape))
+        self.delta_std.copy_(delta.std(dim=dims).clamp_min(1e-6).reshape(self.delta_std.shape))
+        self.fitted.fill_(True)
+
+    def normalize(self, u: torch.Tensor) -> torch.Tensor:
+        return (u - self.state_mean) / self.state_std
+
+    def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def predict_next(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """``u_{t+1}`` only."""
+        return self(u, a)[:, -1]
+
+
+class MLPModel(TransitionModel):
+    """``u_{t+1} = canonical(u_t + delta_std * MLP(normalised u_t, scaled a_t))`` (or the absolute state).
+
+    ``canonical`` is the physics' state map (it wraps the pendulum's angle), so increments never see the
+    jump at +-pi.
+    """
+
+    def __init__(self, physics: Physics, hidden: Sequence[int] = (256, 256), predict_increment: bool = True) -> None:
+        super().__init__(physics, per_feature=True)
+        self.predict_increment = predict_increment
+        sizes = [physics.state_dim + physics.action_dim, *hidden, physics.state_dim]
+        layers: list[nn.Module] = []
+        for i in range(len(sizes) - 1):
+            layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+            if i < len(sizes) - 2:
+                layers.append(nn.SiLU())
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        out = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1))
+        if self.predict_increment:
+            nxt = u + out * self.delta_std
+        else:
+            nxt = out * self.state_std + self.state_mean
+        return self.physics.canonical(nxt)[:, None, :]
+
+
+class CircularConv(nn.Module):
+    """1-D convolution with periodic (circular) padding: the periodic boundary is built in."""
+
+    def __init__(self, c_in: int, c_out: int, kernel: int, stride: int = 1) -> None:
+        super().__init__()
+        self.pad = kernel // 2
+        self.conv = nn.Conv1d(c_in, c_out, kernel, stride=stride)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(nn.functional.pad(x, (self.pad, self.pad), mode="circular"))
+
+
+class ConvLSTMModel(TransitionModel):
+    """Convolutional encoder -> LSTM fed the action N times -> MLP decoder of N intermediate fields.
+
+    The encoder maps the normalised field to a latent vector that initialises the LSTM's hidden and cell
+    states; the LSTM receives the scaled action at each of its ``N`` steps; the decoder maps each LSTM
+    output to a full field increment, so ``u_{t+i/N} = u_t + delta_std * decoder(h_i)``.
+    """
+
+    def __init__(
+        self,
+        physics: SemilinearPDE,
+        n_intermediate: int = 5,
+        channels: Sequence[int] = (8, 16),
+        kernel: int = 5,
+        latent: int = 96,
+        decoder_hidden: int = 192,
+        predict_increment: bool = True,
+    ) -> None:
+        super().__init__(physics, per_feature=False)
+        if n_intermediate < 1:
+            raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
+        self.n_intermediate = int(n_intermediate)
+        self.predict_increment = predict_increment
+        layers: list[nn.Module] = []
+        c_prev, length = 1, physics.state_dim
+        for i, c in enumerate(channels):
+            stride = 1 if i == 0 else 2
+            layers += [CircularConv(c_prev, c, kernel, stride), nn.SiLU()]
+            c_prev = c
+            length = (length + 2 * (kernel // 2) - kernel) // stride + 1
+        self.encoder = nn.Sequential(*layers, nn.Flatten(), nn.Linear(c_prev * length, 2 * latent))
+        self.lstm = nn.LSTM(physics.action_dim, latent, batch_first=True)
+        self.decoder = nn.Sequential(nn.Linear(latent, decoder_hidden), nn.SiLU(), nn.Linear(decoder_hidden, physics.state_dim))
+
+    def _latent_path(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        z = self.encoder(self.normalize(u)[:, None, :])
+        h0, c0 = z.chunk(2, dim=-1)
+        seq = self.scale_action(a)[:, None, :].expand(-1, self.n_intermediate, -1)
+        out, _ = self.lstm(seq, (torch.tanh(h0)[None].contiguous(), c0[None].contiguous()))
+        return out  # (B, N, latent)
+
+    def _decode(self, u: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Fields ``(B, k, n)`` from latent states ``(B, k, latent)``."""
+        d = self.decoder(h)
+        if self.predict_increment:
+            return u[:, None, :] + d * self.delta_std
+        return d * self.state_std + self.state_mean
+
+    def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return self._decode(u, self._latent_path(u, a))
+
+    def predict_next(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """``u_{t+1}`` only: the decoder runs on the last LSTM output alone."""
+        return self._decode(u, self._latent_path(u, a)[:, -1:])[:, 0]
+
+
+def make_model(physics: Physics, n_intermediate: int = 5, hidden: Sequence[int] = (256, 256), predict_increment: bool = True) -> TransitionModel:
+    """The paper's model for ``physics``: ConvLSTM for the PDE systems, MLP for the ODE systems."""
+    if isinstance(physics, SemilinearPDE):
+        return ConvLSTMModel(physics, n_intermediate=n_intermediate, predict_increment=predict_increment)
+    return MLPModel(physics, hidden=hidden, predict_increment=predict_increment)

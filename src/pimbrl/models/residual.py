@@ -1,0 +1,93 @@
+"""The physics-informed loss: the residual of the known equation between a model's intermediate states.
+
+For a model that emits ``N`` states ``v_1 .. v_N`` at ``t + i h`` (``h = T/N``, ``v_0 = u_t``), the defect of
+step ``i`` is ``d_i = v_i - Phi_h(v_{i-1}, a)`` (compared with the physics' own state difference, so angles
+wrap), where ``Phi_h`` is one step of a discretisation of the *same* semi-discrete equations the
+simulator integrates. The residual in units of ``du/dt`` is ``d_i / h``; the loss is ``mean(d_i^2)``, in
+the units of the data loss. It needs no label, so it can be applied to any state-action pair,
+including states the model itself generated.
+
+Schemes for ``Phi_h``:
+
+* ``"etd"`` (PDEs, default): one ETDRK4 step of size ``h`` with the linear stencil treated exactly through
+  its Fourier symbol (:class:`pimbrl.physics.pde.ETDRK4`). Cost: one exponential step for all ``N``
+  defects at once, whatever ``N``. Stable for every ``N``; its distance from the simulator's solver is
+  measured in docs/models.md.
+* ``"solver"``: the simulator's own integrator, composed ``S/N`` times (``S`` solver steps per control
+  step; needs ``N`` to divide ``S``). Zero to round-off on the simulator's output for every such ``N``,
+  at the cost of ``S`` solver steps per sample. For the ODE systems (``S = 1``, ``N = 1``) this is the
+  only scheme, and it is exact and cheap.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+from ..physics import Physics
+from ..physics.pde import SemilinearPDE
+
+__all__ = ["PhysicsResidual", "Scheme"]
+
+Scheme = Literal["etd", "solver"]
+
+
+class PhysicsResidual:
+    """Defects of ``N`` intermediate states against one coarse step of ``physics``.
+
+    Args:
+        physics: the system whose equation is enforced.
+        n_intermediate: ``N``, the number of states the model emits per control step.
+        scheme: ``"etd"`` or ``"solver"`` (see the module docstring).
+    """
+
+    def __init__(self, physics: Physics, n_intermediate: int, scheme: Scheme = "etd") -> None:
+        if n_intermediate < 1:
+            raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
+        self.physics = physics
+        self.n = int(n_intermediate)
+        self.h = physics.control_dt / self.n
+        pde = isinstance(physics, SemilinearPDE)
+        if not pde:
+            if self.n != physics.substeps:
+                raise ValueError(f"{physics.name}: an ODE model emits one state per solver step; need n_intermediate={physics.substeps}")
+            scheme = "solver"
+        if scheme not in ("etd", "solver"):
+            raise ValueError(f"scheme must be 'etd' or 'solver', got {scheme!r}")
+        if scheme == "solver" and physics.substeps % self.n:
+            raise ValueError(
+                f"scheme='solver' needs n_intermediate to divide the {physics.substeps} solver steps per control step, got {self.n}"
+            )
+        self.scheme: Scheme = scheme
+        self._etd = physics.etdrk4(self.n) if (pde and scheme == "etd") else None
+
+    def coarse_step(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``."""
+        phys = self.physics
+        if self._etd is not None:
+            f = phys.forcing(a)  # type: ignore[attr-defined]
+            return self._etd.step(u, lambda v: phys.nonlinear(v, f))  # type: ignore[attr-defined]
+        return phys.step(u, a, substeps=phys.substeps // self.n)
+
+    def defects(self, u0: torch.Tensor, path: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """``d_i = v_i - Phi_h(v_{i-1}, a)`` for ``path`` ``(B, N, state_dim)`` from ``u0`` ``(B, state_dim)``."""
+        b, n, dim = path.shape
+        if n != self.n:
+            raise ValueError(f"the residual was built for {self.n} intermediate states, the path has {n}")
+        prev = torch.cat([u0[:, None, :], path[:, :-1, :]], dim=1).reshape(b * n, dim)
+        acts = a[:, None, :].expand(b, n, a.shape[-1]).reshape(b * n, -1)
+        stepped = self.coarse_step(prev, acts).reshape(b, n, dim)
+        return self.physics.state_difference(path, stepped)
+
+    def loss(self, u0: torch.Tensor, path: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The physics loss ``mean(d^2)``."""
+        return self.defects(u0, path, a).pow(2).mean()
+
+    def rollout(self, u0: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The coarse scheme's own path ``(B, N, state_dim)`` from ``u0``: the states on which its defects vanish."""
+        states, u = [], u0
+        for _ in range(self.n):
+            u = self.coarse_step(u, a)
+            states.append(u)
+        return torch.stack(states, dim=1)
