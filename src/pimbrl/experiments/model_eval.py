@@ -45,7 +45,9 @@ class ModelEvalConfig:
     batch_size: int = param(256, "batch size of the data and of the physics loss", positive())
     lr: float = param(1e-3, "Adam learning rate", positive())
     n_intermediate: int = param(5, "PDE models: intermediate states per control step", positive())
-    scheme: str = param("etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'"))
+    scheme: str = param(
+        "etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'")
+    )
     physics_weight: float = param(1.0, "w_E, weight of the physics loss", non_negative())
     imagined_length: int = param(3, "length of the imagined rollouts that supply unlabelled states", non_negative())
     refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", positive())
@@ -137,7 +139,9 @@ def collect_transitions(
     return TransitionData(cat([canonical(s) for s in states]), cat(actions), cat([canonical(s) for s in nexts]))
 
 
-def _imagined_states(model: torch.nn.Module, task: Task, seeds: TransitionData, length: int, rng: np.random.Generator) -> torch.Tensor:
+def _imagined_states(
+    model: torch.nn.Module, task: Task, seeds: TransitionData, length: int, rng: np.random.Generator
+) -> torch.Tensor:
     """States the model reaches from ``seeds`` in up to ``length`` steps under random actions."""
     out = [seeds.state]
     u = seeds.state
@@ -156,7 +160,9 @@ def _unlabelled(states: torch.Tensor, task: Task, rng: np.random.Generator) -> T
     return TransitionData(states, torch.as_tensor(a, dtype=torch.float32))
 
 
-def run_model_eval(env_id: str, run_dir: str | Path, config: ModelEvalConfig | None = None, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run_model_eval(
+    env_id: str, run_dir: str | Path, config: ModelEvalConfig | None = None, log: Callable[[str], None] = print
+) -> dict[str, Any]:
     """Run the comparison for ``env_id`` and write its outputs into ``run_dir``; returns the summary."""
     cfg = config or ModelEvalConfig(**DEFAULTS.get(env_id, {}))
     validate(cfg)
@@ -207,7 +213,11 @@ def run_model_eval(env_id: str, run_dir: str | Path, config: ModelEvalConfig | N
         for split, data in (("in", test_in), ("out", test_out)):
             mse = trainer.per_transition_mse(data)
             rows += [(name, split, float(v)) for v in mse]
-            summary[f"{name}_{split}"] = {"mean": float(mse.mean()), "median": float(np.median(mse)), "p90": float(np.percentile(mse, 90))}
+            summary[f"{name}_{split}"] = {
+                "mean": float(mse.mean()),
+                "median": float(np.median(mse)),
+                "p90": float(np.percentile(mse, 90)),
+            }
     csv_text = "model,split,mse\n" + "".join(f"{m},{s},{v!r}\n" for m, s, v in rows)
     atomic_write_bytes(out_dir / "model_errors.csv", csv_text.encode())
     summary["wall_s"] = time.perf_counter() - t0
@@ -215,7 +225,10 @@ def run_model_eval(env_id: str, run_dir: str | Path, config: ModelEvalConfig | N
     _plot(rows, out_dir / "model_errors.png", env_id)
     for split in ("in", "out"):
         d, p = summary[f"data_{split}"], summary[f"physics_{split}"]
-        log(f"  {split:3s}-sample MSE  data-only: mean {d['mean']:.3e} median {d['median']:.3e}   physics-informed: mean {p['mean']:.3e} median {p['median']:.3e}")
+        log(
+            f"  {split:3s}-sample MSE  data-only: mean {d['mean']:.3e} median {d['median']:.3e}   "
+            f"physics-informed: mean {p['mean']:.3e} median {p['median']:.3e}"
+        )
     return summary
 
 

@@ -65,7 +65,9 @@ class ModelEnv:
         self.model_calls = 0
 
     @torch.no_grad()
-    def step(self, state: np.ndarray, k: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def step(
+        self, state: np.ndarray, k: np.ndarray, action: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """One imagined control step for a batch: ``(next_state, reward, terminated, valid, phys_action)``.
 
         ``valid`` is False where the prediction blew up (those rows must be discarded).

@@ -157,7 +157,9 @@ class ConvLSTMModel(TransitionModel):
         return self._decode(u, self._latent_path(u, a)[:, -1:])[:, 0]
 
 
-def make_model(physics: Physics, n_intermediate: int = 5, hidden: Sequence[int] = (256, 256), predict_increment: bool = True) -> TransitionModel:
+def make_model(
+    physics: Physics, n_intermediate: int = 5, hidden: Sequence[int] = (256, 256), predict_increment: bool = True
+) -> TransitionModel:
     """The paper's model for ``physics``: ConvLSTM for the PDE systems, MLP for the ODE systems."""
     if isinstance(physics, SemilinearPDE):
         return ConvLSTMModel(physics, n_intermediate=n_intermediate, predict_increment=predict_increment)

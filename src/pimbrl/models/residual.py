@@ -51,13 +51,16 @@ class PhysicsResidual:
         pde = isinstance(physics, SemilinearPDE)
         if not pde:
             if self.n != physics.substeps:
-                raise ValueError(f"{physics.name}: an ODE model emits one state per solver step; need n_intermediate={physics.substeps}")
+                raise ValueError(
+                    f"{physics.name}: an ODE model emits one state per solver step; need n_intermediate={physics.substeps}"
+                )
             scheme = "solver"
         if scheme not in ("etd", "solver"):
             raise ValueError(f"scheme must be 'etd' or 'solver', got {scheme!r}")
         if scheme == "solver" and physics.substeps % self.n:
             raise ValueError(
-                f"scheme='solver' needs n_intermediate to divide the {physics.substeps} solver steps per control step, got {self.n}"
+                f"scheme='solver' needs n_intermediate to divide the {physics.substeps} solver steps "
+                f"per control step, got {self.n}"
             )
         self.scheme: Scheme = scheme
         self._etd = physics.etdrk4(self.n) if (pde and scheme == "etd") else None
