@@ -141,6 +141,10 @@ def test_action_adapter_mappings() -> None:
     disc = ActionAdapter(spaces.Discrete(2))
     assert disc.dim == 1 and disc.to_env(np.array([0.3])) == 1 and disc.to_env(np.array([-0.3])) == 0
     np.testing.assert_array_equal(disc.to_env(np.array([[0.1], [-0.1]])), [1, 0])
+    # while training, a is the probability (a + 1) / 2 of pushing right
+    draws = disc.to_env(np.full((20_000, 1), 0.5), np.random.default_rng(0))
+    assert abs(draws.mean() - 0.75) < 0.01
+    assert disc.to_env(np.full((100, 1), 1.0), np.random.default_rng(0)).min() == 1
     multi = ActionAdapter(spaces.Discrete(3, start=1))
     assert multi.dim == 3 and multi.to_env(np.array([0.1, 0.9, -1.0])) == 2
     with pytest.raises(ValueError, match="bounded"):

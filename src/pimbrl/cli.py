@@ -49,7 +49,7 @@ def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
 def _cmd_train(args: argparse.Namespace) -> int:
     from .agents import AgentConfig
     from .simulate import resolve_env_id
-    from .training import TrainConfig, Trainer, resolve_config
+    from .training import DynaConfig, TrainConfig, create_trainer, resolve_config
 
     env_id = resolve_env_id(args.env)
     overrides = overrides_from_args(args, TrainConfig)
@@ -60,9 +60,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
             overrides["env_kwargs"] = json.loads(args.env_kwargs)
         except json.JSONDecodeError as exc:
             raise ValueError(f'--env-kwargs must be a JSON object, e.g. \'{{"reward": "physical"}}\': {exc}') from None
-    cfg = resolve_config(env_id, overrides, overrides_from_args(args, AgentConfig, prefix="agent."))
+    cfg = resolve_config(
+        env_id,
+        overrides,
+        overrides_from_args(args, AgentConfig, prefix="agent."),
+        overrides_from_args(args, DynaConfig, prefix="dyna."),
+    )
     run_dir = args.run_dir or _default_run_dir(env_id, cfg.method, cfg.agent, cfg.seed)
-    trainer = Trainer.create(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
+    trainer = create_trainer(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"run directory: {run_dir}", file=sys.stderr)
     summary = trainer.run()
     _print_summary(run_dir, summary)
@@ -79,9 +84,9 @@ def _print_summary(run_dir: str, summary) -> None:
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
-    from .training import Trainer
+    from .training import resume_trainer
 
-    trainer = Trainer.resume(args.run_dir, progress=not args.quiet)
+    trainer = resume_trainer(args.run_dir, progress=not args.quiet)
     if trainer.finished:
         print(f"{args.run_dir} has already finished ({trainer.t:,d} steps); nothing to do")
         return 0
@@ -93,9 +98,9 @@ def _cmd_resume(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .training import Evaluator, Trainer, steps_to_threshold
+    from .training import Evaluator, resume_trainer, steps_to_threshold
 
-    trainer = Trainer.resume(args.run_dir, progress=False)
+    trainer = resume_trainer(args.run_dir, progress=False)
     if not trainer.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
     cfg = trainer.cfg
@@ -174,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.set_defaults(func=_cmd_simulate)
 
     from .agents import AgentConfig
-    from .training import TrainConfig
+    from .training import DynaConfig, TrainConfig
 
     tr = sub.add_parser(
         "train",
@@ -187,8 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
     tr.add_argument("--env-kwargs", default=None, help="JSON object of keyword arguments for gymnasium.make")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
-    add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config"))
+    add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config", "dyna"))
     add_arguments(tr, AgentConfig, prefix="agent.")
+    add_arguments(tr, DynaConfig, prefix="dyna.")
     tr.set_defaults(func=_cmd_train)
 
     rs = sub.add_parser("resume", help="continue a run from its last checkpoint")

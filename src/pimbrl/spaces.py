@@ -4,7 +4,12 @@ Agents always act in ``[-1, 1]^d``. The adapter turns that into what ``env.step`
 
 * ``Box(low, high)``: the affine map ``low + (a + 1) (high - low) / 2``, so exploration noise of standard
   deviation ``sigma`` in the agent's space is ``sigma (high - low) / 2`` in each physical dimension;
-* ``Discrete(2)`` (Cart-Pole): a one-dimensional actor output, action ``1`` where ``a >= 0`` else ``0``;
+* ``Discrete(2)`` (Cart-Pole): a one-dimensional actor output ``a`` read as the probability
+  ``p = (a + 1) / 2`` of action ``1``. While training (a ``numpy.random.Generator`` is given) the action is
+  drawn with that probability, so the expected outcome is linear in ``a`` and the critic's ``dQ/da``
+  carries a policy gradient everywhere; a hard threshold would make ``Q`` flat in ``a`` except at 0 and
+  leave a deterministic actor without gradient (measured: TD3 stuck at a constant push). For evaluation
+  (no generator) the more probable action is taken: ``1`` where ``a >= 0``;
 * ``Discrete(n > 2)``: an ``n``-dimensional output, action ``argmax(a)`` (offset by ``space.start``).
 
 The critic always sees the continuous action, which is what is stored in replay buffers.
@@ -40,14 +45,19 @@ class ActionAdapter:
         else:
             raise TypeError(f"unsupported action space {space}: pimbrl agents handle Box and Discrete")
 
-    def to_env(self, a: np.ndarray) -> Any:
-        """Environment action(s) for normalised ``a`` of shape ``(dim,)`` or ``(B, dim)``."""
+    def to_env(self, a: np.ndarray, rng: np.random.Generator | None = None) -> Any:
+        """Environment action(s) for normalised ``a`` of shape ``(dim,)`` or ``(B, dim)``; ``rng`` samples the
+        ``Discrete(2)`` mapping (training), without it the more probable action is taken (evaluation)."""
         a = np.asarray(a)
         if self.kind == "box":
             env_a = self.low + (np.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)
             return env_a.astype(self.space.dtype).reshape(a.shape[:-1] + self.space.shape)
         if self.n == 2:
-            out = (a[..., 0] >= 0).astype(np.int64) + self.start
+            if rng is None:
+                out = (a[..., 0] >= 0).astype(np.int64) + self.start
+            else:
+                p = (np.clip(a[..., 0], -1.0, 1.0) + 1.0) * 0.5
+                out = (rng.random(p.shape) < p).astype(np.int64) + self.start
         else:
             out = np.argmax(a, axis=-1).astype(np.int64) + self.start
         return int(out) if out.ndim == 0 else out

@@ -46,6 +46,8 @@ class PhysicsEnv(gym.Env):
         self.render_mode = None
         self._u: np.ndarray | None = None  # (1, state_dim) float64
         self._k = np.zeros(1, dtype=np.int64)
+        #: the clipped physical action of the last step (e.g. the force for Cart-Pole's discrete action)
+        self.last_physical_action = np.zeros(self.physics.action_dim)
 
     @property
     def state(self) -> np.ndarray:
@@ -73,6 +75,7 @@ class PhysicsEnv(gym.Env):
         if self._u is None:
             raise RuntimeError("call reset() before step()")
         a = self.task.physical_action(action, 1)
+        self.last_physical_action = a[0]
         out = self.task.advance(self._u, self._k, a)
         self._u = out.state
         self._k = self._k + 1

@@ -55,13 +55,17 @@ class ModelEnv:
         model: the learned transition model.
         task: the environment's task (observation, action mapping, episode length).
         adapter: maps normalised agent actions to environment actions.
+        rng: draws the stochastic ``Discrete(2)`` action mapping during imagination (as in training).
     """
 
-    def __init__(self, model: TransitionModel, task: Task, adapter: ActionAdapter) -> None:
+    def __init__(
+        self, model: TransitionModel, task: Task, adapter: ActionAdapter, rng: np.random.Generator | None = None
+    ) -> None:
         self.model = model
         self.task = task
         self.physics = task.physics
         self.adapter = adapter
+        self.rng = rng  # samples stochastic action mappings (Discrete(2)), as in the real environment
         self.model_calls = 0
 
     @torch.no_grad()
@@ -72,7 +76,7 @@ class ModelEnv:
 
         ``valid`` is False where the prediction blew up (those rows must be discarded).
         """
-        phys_a = self.task.physical_action(self.adapter.to_env(action), len(state))
+        phys_a = self.task.physical_action(self.adapter.to_env(action, self.rng), len(state))
         path = self.model(torch.as_tensor(state, dtype=torch.float32), torch.as_tensor(phys_a, dtype=torch.float32))
         self.model_calls += 1
         path_np = path.double().numpy()

@@ -51,6 +51,14 @@ class TransitionModel(nn.Module):
         self.delta_std.copy_(delta.std(dim=dims).clamp_min(1e-6).reshape(self.delta_std.shape))
         self.fitted.fill_(True)
 
+    @torch.no_grad()
+    def fit_state_normalization(self, u: torch.Tensor) -> None:
+        """Set the state statistics from unlabelled states (the increment scale stays 1)."""
+        dims = 0 if self.per_feature else (0, 1)
+        self.state_mean.copy_(u.mean(dim=dims).reshape(self.state_mean.shape))
+        self.state_std.copy_(u.std(dim=dims).clamp_min(1e-6).reshape(self.state_std.shape))
+        self.fitted.fill_(True)
+
     def normalize(self, u: torch.Tensor) -> torch.Tensor:
         return (u - self.state_mean) / self.state_std
 

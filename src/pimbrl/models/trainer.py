@@ -13,6 +13,7 @@ the model never trains on (the authors used the last training loss).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -20,7 +21,7 @@ import torch
 from .networks import TransitionModel
 from .residual import PhysicsResidual
 
-__all__ = ["ModelTrainer", "TransitionData"]
+__all__ = ["ModelTrainer", "TransitionData", "TransitionSource"]
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,14 @@ class TransitionData:
 
     def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
         return self.take(torch.from_numpy(rng.integers(0, len(self), size=batch)))
+
+
+class TransitionSource(Protocol):
+    """Anything that draws random batches of transitions."""
+
+    def __len__(self) -> int: ...
+
+    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData: ...
 
 
 class ModelTrainer:
@@ -71,9 +80,13 @@ class ModelTrainer:
         self.steps = 0
 
     def ensure_normalization(self, data: TransitionData) -> None:
-        """Fit the model's normalisation once, from the first labelled data it sees."""
-        if not bool(self.model.fitted) and data.next_state is not None:
+        """Fit the model's normalisation once, from the first data it sees (labelled if possible)."""
+        if bool(self.model.fitted):
+            return
+        if data.next_state is not None:
             self.model.fit_normalization(data.state, data.next_state)
+        else:
+            self.model.fit_state_normalization(data.state)
 
     def step(self, labelled: TransitionData | None = None, unlabelled: TransitionData | None = None) -> dict[str, float]:
         """One gradient step on ``w_D L_D(labelled) + w_E L_E(unlabelled)`` (either may be ``None``)."""
@@ -110,12 +123,17 @@ class ModelTrainer:
         steps: int,
         batch_size: int,
         rng: np.random.Generator,
-        labelled: TransitionData | None = None,
-        unlabelled: TransitionData | None = None,
+        labelled: TransitionSource | None = None,
+        unlabelled: TransitionSource | None = None,
     ) -> dict[str, float]:
-        """``steps`` gradient steps on random batches; returns the metrics averaged over the steps."""
-        if labelled is not None:
-            self.ensure_normalization(labelled)
+        """``steps`` gradient steps on random batches; returns the metrics averaged over the steps.
+
+        ``labelled`` and ``unlabelled`` are anything with ``sample(batch, rng) -> TransitionData``
+        (a :class:`TransitionData`, or a view of a replay buffer).
+        """
+        first = labelled if labelled is not None else unlabelled
+        if isinstance(first, TransitionData):
+            self.ensure_normalization(first)
         totals: dict[str, float] = {}
         for _ in range(steps):
             m = self.step(

@@ -1,12 +1,19 @@
 """Training: configuration and presets, the loop, evaluation, run directories."""
 
-from .config import METHODS, PRESETS, TrainConfig, resolve_config
+from .config import METHODS, PRESETS, DynaConfig, TrainConfig, resolve_config
+from .dyna import DynaTrainer
 from .evaluation import EvalResult, Evaluator
 from .loop import RunSummary, Trainer, steps_to_threshold
 from .rundir import RunDirectory
+from .runs import create_trainer, resume_trainer, trainer_class
 
 __all__ = [
     "METHODS",
+    "DynaConfig",
+    "DynaTrainer",
+    "create_trainer",
+    "resume_trainer",
+    "trainer_class",
     "PRESETS",
     "EvalResult",
     "Evaluator",

@@ -13,9 +13,43 @@ from typing import Any
 from ..agents import AGENTS, AgentConfig
 from ..config import ConfigError, from_dict, in_range, non_negative, one_of, param, positive, validate
 
-__all__ = ["TrainConfig", "PRESETS", "resolve_config", "METHODS"]
+__all__ = ["DynaConfig", "TrainConfig", "PRESETS", "resolve_config", "METHODS"]
 
 METHODS = ("mfrl", "mbrl", "pimbrl")
+
+
+@dataclass(frozen=True)
+class DynaConfig:
+    """Settings of the model-based methods (mbrl, pimbrl): the model, its training and its use.
+
+    Defaults follow the paper's Table 2 where the paper gives a value (lambda, l_M, n_sM, n_sR); presets
+    per environment override them (see PRESETS and docs/methods.md for every change and why).
+    """
+
+    threshold: float = param(1e-2, "lambda: held-out next-state MSE below which the model generates imagined data", positive())
+    rollout_length: int = param(3, "l_M: chained model steps per imagined rollout", positive())
+    start_model_after: int = param(6_000, "n_sM: real transitions before the model is first trained", non_negative())
+    start_physics_after: int = param(
+        12_000, "n_sR: real + imagined transitions before the physics loss joins (pimbrl)", non_negative()
+    )
+    model_steps: int = param(50, "model gradient steps per update phase", non_negative())
+    model_batch_size: int = param(256, "batch size of the data loss and of the physics loss", positive())
+    model_lr: float = param(1e-3, "model learning rate (Adam)", positive())
+    n_intermediate: int = param(5, "PDE models: intermediate states per control step (N)", positive())
+    residual: str = param("etd", "physics residual scheme for PDEs: etd or solver", one_of("etd", "solver"))
+    physics_weight: float = param(1.0, "w_E: weight of the physics loss", non_negative())
+    rollouts: int = param(200, "imagined rollouts started per update phase (n_bf)", non_negative())
+    imagined_buffer_size: int = param(100_000, "capacity of the imagined buffer; older imagined data is refreshed", positive())
+    imagined_start_fraction: float = param(
+        0.0, "fraction of rollout start states drawn from the imagined buffer", in_range(0.0, 1.0)
+    )
+    real_ratio: float = param(0.5, "fraction of real transitions in agent batches while the model is in use", in_range(0.0, 1.0))
+    holdout_fraction: float = param(
+        0.1, "fraction of real transitions held out to measure the model's accuracy", in_range(0.0, 0.5, lo_open=True)
+    )
+    validation_size: int = param(2_000, "most recent held-out transitions used for the accuracy check", positive())
+    finetune_return: float | None = param(None, "switch to model-free fine-tuning once the mean test return reaches this")
+    finetune_after: int | None = param(None, "switch to model-free fine-tuning after this many real steps")
 
 
 @dataclass(frozen=True)
@@ -43,6 +77,9 @@ class TrainConfig:
     env_kwargs: dict = param({}, "keyword arguments for gymnasium.make")
     agent_config: AgentConfig = dataclasses.field(
         default_factory=AgentConfig, metadata={"help": "agent hyperparameters (flags --agent.<name>)", "prefix": "agent"}
+    )
+    dyna: DynaConfig = dataclasses.field(
+        default_factory=DynaConfig, metadata={"help": "model-based settings (flags --dyna.<name>)", "prefix": "dyna"}
     )
 
 
@@ -87,18 +124,30 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 
 def resolve_config(
-    env: str, overrides: dict[str, Any] | None = None, agent_overrides: dict[str, Any] | None = None
+    env: str,
+    overrides: dict[str, Any] | None = None,
+    agent_overrides: dict[str, Any] | None = None,
+    dyna_overrides: dict[str, Any] | None = None,
 ) -> TrainConfig:
-    """Defaults, then the preset of ``env``, then ``overrides`` / ``agent_overrides``; validated."""
+    """Defaults, then the preset of ``env`` (its model-free part, plus its model-based part for mbrl and
+    pimbrl), then the overrides; validated."""
+    overrides = dict(overrides or {})
+    method = overrides.get("method", "mfrl")
     preset = dict(PRESETS.get(env, {}))
-    agent_fields = dict(preset.pop("agent_config", {}))
-    agent_fields.update(agent_overrides or {})
-    fields = {**preset, **(overrides or {}), "env": env}
+    model_based = dict(preset.pop("model_based", {}))
+    if method in ("mbrl", "pimbrl"):
+        preset.update({k: v for k, v in model_based.items() if k not in ("agent_config", "dyna")})
+        for key in ("agent_config", "dyna"):
+            preset[key] = {**preset.get(key, {}), **model_based.get(key, {})}
+    agent_fields = {**preset.pop("agent_config", {}), **(agent_overrides or {})}
+    dyna_fields = {**preset.pop("dyna", {}), **(dyna_overrides or {})}
+    fields = {**preset, **overrides, "env": env}
     try:
         agent_cfg = from_dict(AgentConfig, agent_fields)
-        cfg = from_dict(TrainConfig, {k: v for k, v in fields.items() if k != "agent_config"})
+        dyna_cfg = from_dict(DynaConfig, dyna_fields)
+        cfg = from_dict(TrainConfig, fields)
     except TypeError as exc:
         raise ConfigError(str(exc)) from None
-    cfg = dataclasses.replace(cfg, agent_config=agent_cfg)
+    cfg = dataclasses.replace(cfg, agent_config=agent_cfg, dyna=dyna_cfg)
     validate(cfg)
     return cfg

@@ -151,7 +151,7 @@ class Trainer:
             while self.t < cfg.total_steps:
                 # 1. act in the real environment and store the transition
                 action = self.adapter.sample(self.rng) if self.t < cfg.warmup_steps else self.agent.act(obs)[0]
-                next_obs, reward, terminated, truncated, info = self.env.step(self.adapter.to_env(action))
+                next_obs, reward, terminated, truncated, info = self.env.step(self.adapter.to_env(action, self.rng))
                 self.buffer.add(obs, action, reward, next_obs, terminated, truncated, **self.transition_extras(info))
                 self.t += 1
                 self.episode_return += float(reward)
@@ -190,8 +190,12 @@ class Trainer:
                 self._tb.close()
 
     def update_phase(self) -> None:
-        """The model phase, then ``update_every * utd`` agent updates (fractional ratios carry over)."""
+        """The model phase (model-based methods only), then the agent updates."""
         self.model_phase()
+        self.agent_updates()
+
+    def agent_updates(self) -> None:
+        """``update_every * utd`` agent updates (a fractional update-to-data ratio carries over)."""
         self.update_credit += self.cfg.update_every * self.cfg.utd
         n = int(math.floor(self.update_credit + 1e-9))
         self.update_credit -= n

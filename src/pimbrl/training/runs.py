@@ -1,0 +1,27 @@
+"""Creating and resuming runs: the right trainer for each method."""
+
+from __future__ import annotations
+
+from ..config import from_dict
+from .config import TrainConfig
+from .dyna import DynaTrainer
+from .loop import Trainer
+from .rundir import RunDirectory
+
+__all__ = ["create_trainer", "resume_trainer", "trainer_class"]
+
+
+def trainer_class(method: str) -> type[Trainer]:
+    """:class:`Trainer` for ``mfrl``, :class:`DynaTrainer` for ``mbrl`` and ``pimbrl``."""
+    return Trainer if method == "mfrl" else DynaTrainer
+
+
+def create_trainer(cfg: TrainConfig, path: str, progress: bool = True, command: str = "") -> Trainer:
+    """A new run of ``cfg`` in ``path``."""
+    return trainer_class(cfg.method).create(cfg, path, progress=progress, command=command)
+
+
+def resume_trainer(path: str, progress: bool = True) -> Trainer:
+    """The run in ``path``, at its last checkpoint."""
+    cfg = from_dict(TrainConfig, RunDirectory(path).read_config()["config"])
+    return trainer_class(cfg.method).resume(path, progress=progress)
