@@ -164,6 +164,45 @@ def _cmd_model_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _seed_list(text: str) -> list[int]:
+    """``"3"`` means seeds 0, 1, 2; ``"0,4,7"`` those seeds."""
+    try:
+        return [int(s) for s in text.split(",")] if "," in text else list(range(int(text)))
+    except ValueError:
+        raise ValueError(f"--seeds must be a count (e.g. 3) or a comma-separated list (e.g. 0,1,2), got {text!r}") from None
+
+
+def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
+    from .experiments.compare import compare
+    from .simulate import resolve_env_id
+
+    env_id = resolve_env_id(args.env)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    train_extra = list(extra)
+    if args.steps is not None:
+        train_extra += ["--steps", str(args.steps)]
+    if args.threshold is not None:
+        train_extra += ["--threshold", repr(args.threshold)]
+    result = compare(env_id, methods, _seed_list(args.seeds), args.run_dir, train_extra, jobs=args.jobs, threshold=args.threshold)
+    thr = result["threshold"]
+    print(f"{env_id}: threshold {thr}")
+    for label, m in result["methods"].items():
+        s2t = "not reached on every seed" if m["steps_to_threshold_mean"] is None else f"{m['steps_to_threshold_mean']:,.0f}"
+        print(
+            f"  {label:13s} seeds {m['seeds']}  reached {m['reached']}/{m['seeds']}  steps to threshold {s2t} "
+            f"{m['steps_to_threshold']}  final {m['final_return_mean']:.3f}  updates/step {m['update_to_data']:.2f}  "
+            f"wall {m['wall_s_mean']:.0f} s"
+        )
+    for name, r in result["ratios"].items():
+        value = "-" if r["value"] is None else f"{r['value']:.3f}"
+        print(f"  steps ratio {name}: {value} ({r['note']})")
+    if result["failed"]:
+        print(f"failed runs: {', '.join(result['failed'])}", file=sys.stderr)
+        return 1
+    print(f"wrote {Path(args.run_dir) / 'curves.png'}, summary.csv and summary.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -224,16 +263,39 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("--run-dir", required=True, help="output directory (model_errors.csv, summary.json, model_errors.png)")
     add_arguments(me, ModelEvalConfig)
     me.set_defaults(func=_cmd_model_eval)
+
+    cp = sub.add_parser(
+        "compare",
+        help="run several methods x seeds on one environment (resumable) and write curves.png and summary.csv",
+        description="Run every method and seed (finished runs are skipped, interrupted ones resumed), then "
+        "write DIR/curves.png, DIR/summary.csv and DIR/summary.json. Arguments after -- go to every "
+        "`pimbrl train`.",
+    )
+    cp.add_argument("env")
+    cp.add_argument("--methods", default="mfrl,mbrl,pimbrl", help="comma-separated: mfrl, mbrl, pimbrl, mfrl-matched")
+    cp.add_argument("--seeds", default="3", help="a count (3 -> seeds 0,1,2) or a list (0,1,2)")
+    cp.add_argument("--run-dir", required=True)
+    cp.add_argument("--jobs", type=int, default=1, help="runs in parallel (each one thread)")
+    cp.add_argument("--steps", type=int, default=None, help="real steps of every run")
+    cp.add_argument("--threshold", type=float, default=None, help="return that counts as solved (default: the preset's)")
+    cp.set_defaults(func=_cmd_compare, takes_extra=True)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:  # everything after -- is passed through (compare -> train)
+        cut = argv.index("--")
+        argv, extra = argv[:cut], argv[cut + 1 :]
     args = parser.parse_args(argv)
+    if extra and not getattr(args, "takes_extra", False):
+        parser.error(f"`pimbrl {args.command}` takes no arguments after --")
     if getattr(args, "steps", None) is not None and args.steps < 1:
         parser.error("--steps must be >= 1")
     try:
-        return int(args.func(args))
+        return int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
     except (ConfigError, ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"pimbrl {args.command}: error: {exc}", file=sys.stderr)
         return 2

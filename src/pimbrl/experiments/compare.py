@@ -1,0 +1,223 @@
+"""`pimbrl compare`: every method and seed on one environment, then one figure and one table.
+
+Each (method, seed) is a run directory ``DIR/<method>/seed<k>`` trained in its own process; finished runs
+are skipped, interrupted ones resumed, so re-running the command only does what is missing. The method
+``mfrl-matched`` is MFRL with the agent-update budget of the model-based runs (their update-to-data
+ratio), which separates the effect of the model from the effect of more updates.
+
+Outputs: ``curves.png`` (per method: the mean over seeds of the mean test return, with the band from the
+lowest to the highest test episode of any seed), ``summary.csv`` (per run and per method: steps to the
+threshold, final and best mean test return, wall-clock, updates and the update-to-data ratio) and
+``summary.json`` (the same plus the PiMBRL/MBRL and PiMBRL/MFRL step ratios).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..training import RunDirectory, resolve_config, steps_to_threshold
+from ..training.rundir import atomic_write_bytes
+
+__all__ = ["COMPARE_METHODS", "RunSpec", "compare", "summarize_runs", "plan_runs", "run_all"]
+
+COMPARE_METHODS = ("mfrl", "mbrl", "pimbrl", "mfrl-matched")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run to make: its directory and the `pimbrl train` arguments."""
+
+    label: str  # method label, e.g. "pimbrl" or "mfrl-matched"
+    seed: int
+    path: Path
+    train_args: tuple[str, ...]
+
+
+def plan_runs(env_id: str, methods: Sequence[str], seeds: Sequence[int], root: Path, extra: Sequence[str] = ()) -> list[RunSpec]:
+    """The runs of a comparison (``extra`` goes to every `pimbrl train`)."""
+    specs = []
+    for label in methods:
+        if label not in COMPARE_METHODS:
+            raise ValueError(f"unknown method {label!r}: choose from {', '.join(COMPARE_METHODS)}")
+        method = "mfrl" if label == "mfrl-matched" else label
+        args = ["--method", method, *extra]
+        if label == "mfrl-matched":
+            matched = resolve_config(env_id, {"method": "pimbrl"}).utd
+            args += ["--utd", repr(matched)]
+        for seed in seeds:
+            specs.append(RunSpec(label, seed, root / label / f"seed{seed}", (env_id, "--seed", str(seed), *args)))
+    return specs
+
+
+def _status(path: Path) -> str | None:
+    cfg = path / "config.json"
+    if not cfg.exists():
+        return None
+    try:
+        return json.loads(cfg.read_text()).get("status")
+    except json.JSONDecodeError:
+        return None
+
+
+def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] = print) -> list[RunSpec]:
+    """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs."""
+    pending = []
+    for spec in specs:
+        status = _status(spec.path)
+        if status == "finished":
+            continue
+        if status is None:
+            cmd = [sys.executable, "-m", "pimbrl.cli", "train", *spec.train_args, "--run-dir", str(spec.path), "--quiet"]
+        else:
+            cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet"]
+        pending.append((spec, cmd))
+    failed: list[RunSpec] = []
+    running: list[tuple[RunSpec, subprocess.Popen]] = []
+    while pending or running:
+        while pending and len(running) < max(1, jobs):
+            spec, cmd = pending.pop(0)
+            log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
+            running.append((spec, subprocess.Popen(cmd)))
+        time.sleep(0.5)
+        for item in list(running):
+            spec, proc = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            if proc.returncode != 0:
+                failed.append(spec)
+                log(f"FAILED {spec.label} seed {spec.seed} (exit code {proc.returncode}); the others go on")
+            else:
+                log(f"done {spec.label} seed {spec.seed}")
+    return failed
+
+
+def _curve(rows: list[dict[str, str]], name: str) -> np.ndarray:
+    return np.array([float(r[name]) for r in rows])
+
+
+def summarize_runs(specs: Sequence[RunSpec], threshold: float | None) -> dict[str, Any]:
+    """Per-run and per-method results of finished (or partly finished) runs."""
+    runs = []
+    for spec in specs:
+        if _status(spec.path) is None:
+            continue
+        run = RunDirectory(spec.path)
+        rows = run.evaluations.read()
+        if not rows:
+            continue
+        payload = run.read_config()
+        summary = payload.get("summary") or {}
+        steps = int(float(rows[-1]["step"]))
+        runs.append(
+            {
+                "method": spec.label,
+                "seed": spec.seed,
+                "finished": payload.get("status") == "finished",
+                "steps": steps,
+                "steps_to_threshold": steps_to_threshold(rows, threshold),
+                "final_return": float(rows[-1]["return_mean"]),
+                "best_return": max(float(r["return_mean"]) for r in rows),
+                "wall_s": summary.get("wall_s", float(rows[-1]["wall_s"])),
+                "updates": int(float(rows[-1]["updates"])),
+                "update_to_data": int(float(rows[-1]["updates"])) / max(steps, 1),
+                "curve": {k: _curve(rows, k).tolist() for k in ("step", "return_mean", "return_min", "return_max")},
+            }
+        )
+    methods: dict[str, dict[str, Any]] = {}
+    for label in dict.fromkeys(r["method"] for r in runs):
+        mine = [r for r in runs if r["method"] == label]
+        reached = [r["steps_to_threshold"] for r in mine if r["steps_to_threshold"] is not None]
+        methods[label] = {
+            "seeds": len(mine),
+            "reached": len(reached),
+            "steps_to_threshold_mean": float(np.mean(reached)) if len(reached) == len(mine) and reached else None,
+            "steps_to_threshold": [r["steps_to_threshold"] for r in mine],
+            "max_steps": max(r["steps"] for r in mine),
+            "final_return_mean": float(np.mean([r["final_return"] for r in mine])),
+            "wall_s_mean": float(np.mean([r["wall_s"] for r in mine])),
+            "update_to_data": float(np.mean([r["update_to_data"] for r in mine])),
+        }
+    ratios = {}
+    pim = methods.get("pimbrl", {})
+    for other in ("mbrl", "mfrl", "mfrl-matched"):
+        if other in methods and pim:
+            ratios[f"pimbrl/{other}"] = _ratio(pim, methods[other])
+    return {"threshold": threshold, "runs": runs, "methods": methods, "ratios": ratios}
+
+
+def _ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """Steps-to-threshold ratio a/b; an upper bound where b never reached the threshold within its budget."""
+    if a["steps_to_threshold_mean"] is None:
+        return {"value": None, "note": "pimbrl did not reach the threshold on every seed"}
+    if b["steps_to_threshold_mean"] is None:
+        return {
+            "value": a["steps_to_threshold_mean"] / b["max_steps"],
+            "note": f"upper bound: not every seed reached it within {b['max_steps']} steps",
+        }
+    return {"value": a["steps_to_threshold_mean"] / b["steps_to_threshold_mean"], "note": "mean over seeds"}
+
+
+def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
+    """``summary.csv``, ``summary.json`` and ``curves.png`` in ``root``."""
+    lines = ["method,seed,steps_to_threshold,final_return,best_return,wall_s,updates,update_to_data"]
+    for r in result["runs"]:
+        s2t = "" if r["steps_to_threshold"] is None else r["steps_to_threshold"]
+        lines.append(
+            f"{r['method']},{r['seed']},{s2t},{r['final_return']!r},{r['best_return']!r},{r['wall_s']:.1f},{r['updates']},{r['update_to_data']:.3f}"
+        )
+    for label, m in result["methods"].items():
+        s2t = "" if m["steps_to_threshold_mean"] is None else m["steps_to_threshold_mean"]
+        lines.append(f"{label},mean,{s2t},{m['final_return_mean']!r},,{m['wall_s_mean']:.1f},,{m['update_to_data']:.3f}")
+    atomic_write_bytes(root / "summary.csv", ("\n".join(lines) + "\n").encode())
+    slim = {**result, "runs": [{k: v for k, v in r.items() if k != "curve"} for r in result["runs"]], "env": env_id}
+    atomic_write_bytes(root / "summary.json", (json.dumps(slim, indent=2) + "\n").encode())
+    plot_method_curves(result, root / "curves.png", env_id)
+
+
+def plot_method_curves(result: dict[str, Any], path: Path, title: str) -> None:
+    from ..plotting import plot_learning_curves
+
+    curves = []
+    for label in result["methods"]:
+        mine = [r["curve"] for r in result["runs"] if r["method"] == label]
+        n = min(len(c["step"]) for c in mine)
+        steps = np.array(mine[0]["step"][:n])
+        mean = np.mean([c["return_mean"][:n] for c in mine], axis=0)
+        low = np.min([c["return_min"][:n] for c in mine], axis=0)
+        high = np.max([c["return_max"][:n] for c in mine], axis=0)
+        curves.append((f"{label} ({len(mine)} seeds)", steps, mean, low, high))
+    plot_learning_curves(curves, path, title=title, threshold=result["threshold"])
+
+
+def compare(
+    env_id: str,
+    methods: Sequence[str],
+    seeds: Sequence[int],
+    root: str | Path,
+    extra: Sequence[str] = (),
+    jobs: int = 1,
+    threshold: float | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run (what is missing of) a comparison and write its figure and tables."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    specs = plan_runs(env_id, methods, seeds, root, extra)
+    failed = run_all(specs, jobs=jobs, log=log)
+    if threshold is None:
+        threshold = resolve_config(env_id, {"method": "mfrl"}).threshold
+    result = summarize_runs(specs, threshold)
+    result["failed"] = [f"{s.label}/seed{s.seed}" for s in failed]
+    if result["runs"]:
+        write_outputs(result, root, env_id)
+    return result
