@@ -49,8 +49,6 @@ class DynaTrainer(Trainer):
             raise ValueError(f"DynaTrainer runs mbrl or pimbrl, not {cfg.method!r}")
         super().__init__(cfg, run_dir, progress)
         base = self.env.unwrapped
-        if not isinstance(base, PhysicsEnv):
-            raise ValueError(f"{cfg.method} needs a pimbrl environment with a known Physics; {cfg.env} is not one")
         self.task = base.task
         self.physics = base.physics
         d = cfg.dyna
@@ -73,7 +71,10 @@ class DynaTrainer(Trainer):
 
     # ------------------------------------------------------------------ real transitions carry physics
     def buffer_extras(self) -> dict[str, tuple[int, ...]]:
-        n, m = self.env.unwrapped.physics.state_dim, self.env.unwrapped.physics.action_dim
+        base = self.env.unwrapped
+        if not isinstance(base, PhysicsEnv):
+            raise ValueError(f"{self.cfg.method} needs a pimbrl environment with a known Physics; {self.cfg.env} is not one")
+        n, m = base.physics.state_dim, base.physics.action_dim
         return {"state": (n,), "next_state": (n,), "phys_action": (m,), "k": (1,), "holdout": (1,)}
 
     def _reset_env(self, first: bool) -> np.ndarray:

@@ -1,0 +1,183 @@
+"""The Dyna loop (MBRL, PiMBRL): every method on every environment, phase order, resume mid-phase, compare."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from pimbrl.cli import main
+from pimbrl.training import DynaTrainer, RunDirectory, resolve_config
+
+from .conftest import SMALL_POOL
+from .test_training import POOL, TINY, _table
+
+SMALL_MODEL = ["--dyna.model-batch-size", "32", "--dyna.rollouts", "16", "--dyna.validation-size", "64"]
+DYNA_SMOKE = {
+    "ks": ["--steps", "60", "--warmup-steps", "20", "--update-after", "20", "--update-every", "20", "--eval-every", "60",
+           "--eval-episodes", "2", "--env-kwargs", POOL, "--dyna.start-model-after", "20", "--dyna.start-physics-after", "30",
+           "--dyna.model-steps", "2", "--dyna.threshold", "1e3"],
+    "burgers": ["--steps", "180", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "60", "--eval-episodes", "3",
+                "--dyna.start-model-after", "60", "--dyna.start-physics-after", "60", "--dyna.model-steps", "3", "--dyna.threshold", "1e3"],
+    "cartpole": ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "3",
+                 "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
+                 "--dyna.threshold", "1e3", "--dyna.rollout-length", "20"],
+    "pendulum": ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "3",
+                 "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
+                 "--dyna.threshold", "1e3", "--dyna.rollout-length", "20"],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("method", ["mbrl", "pimbrl"])
+@pytest.mark.parametrize("env", list(DYNA_SMOKE))
+def test_model_based_methods_run_on_every_env(env: str, method: str, tmp_path) -> None:
+    run = tmp_path / "run"
+    assert main(["train", env, "--method", method, "--run-dir", str(run), *DYNA_SMOKE[env], *TINY, *SMALL_MODEL]) == 0
+    payload = json.loads((run / "config.json").read_text())
+    assert payload["status"] == "finished" and payload["config"]["method"] == method
+    metrics = RunDirectory(run).metrics([]).read()
+    last = metrics[-1]
+    assert float(last["model/data_loss"]) >= 0 and last["model/in_use"] == "1"
+    assert int(last["imagined_total"]) > 0 and float(last["update_to_data"]) > 0
+    assert ("model/physics_loss" in last) == (method == "pimbrl")
+    if method == "pimbrl":
+        assert float(last["model/physics_loss"]) >= 0
+    assert all(float(last[f"time/{p}_s"]) >= 0 for p in ("model_train", "imagine", "agent_update", "evaluate"))
+
+
+class RecordingTrainer(DynaTrainer):
+    """Records, at every update phase, what ran."""
+
+    def __init__(self, *a, **k) -> None:
+        super().__init__(*a, **k)
+        self.log: list[dict] = []
+
+    def model_phase(self) -> None:
+        before = self.model_trainer.steps
+        imagined_before = self.imagined_total
+        imagined_len = len(self.imagined)  # what the model phase saw when it decided on the physics loss
+        super().model_phase()
+        self.log.append(
+            {
+                "t": self.t,
+                "real": len(self.buffer),
+                "imagined": imagined_len,
+                "model_trained": self.model_trainer.steps > before,
+                "physics": "model/physics_loss" in self.model_metrics and self.model_trainer.steps > before,
+                "imagined_now": self.imagined_total > imagined_before,
+                "in_use": self.model_in_use,
+                "agent_updates": self.agent.n_updates,
+            }
+        )
+
+
+def test_phases_start_in_the_configured_order(tmp_path) -> None:
+    cfg = resolve_config(
+        "pimbrl/Pendulum-v0",
+        {"method": "pimbrl", "total_steps": 600, "warmup_steps": 50, "update_after": 100, "update_every": 50,
+         "eval_every": 600, "eval_episodes": 2},
+        {"hidden": (16, 16), "batch_size": 16},
+        {"start_model_after": 200, "start_physics_after": 400, "model_steps": 2, "model_batch_size": 16,
+         "rollouts": 8, "rollout_length": 5, "threshold": 1e3, "validation_size": 32},
+    )  # fmt: skip
+    trainer = RecordingTrainer.create(cfg, str(tmp_path / "run"), progress=False)
+    trainer.run()
+    log = trainer.log
+    assert log[0]["t"] == 100  # update_after
+    for entry in log:
+        assert entry["model_trained"] == (entry["real"] >= 200)  # n_sM
+        assert entry["physics"] == (entry["model_trained"] and entry["real"] + entry["imagined"] >= 400 and entry["imagined"] > 0)
+        assert entry["imagined_now"] == entry["in_use"]  # imagination only with a usable model
+        assert not entry["in_use"] or entry["model_trained"]
+    assert any(e["physics"] for e in log) and not log[0]["physics"]
+    # a model that never meets lambda is never used: MBRL then equals MFRL in what the agent sees
+    strict = resolve_config(
+        "pimbrl/Pendulum-v0",
+        {"method": "mbrl", "total_steps": 300, "warmup_steps": 50, "update_after": 100, "eval_every": 300, "eval_episodes": 2},
+        {"hidden": (16, 16), "batch_size": 16},
+        {"start_model_after": 100, "model_steps": 1, "model_batch_size": 16, "threshold": 1e-12, "validation_size": 32},
+    )  # fmt: skip
+    t2 = RecordingTrainer.create(strict, str(tmp_path / "strict"), progress=False)
+    t2.run()
+    assert not any(e["in_use"] for e in t2.log) and t2.imagined_total == 0
+
+
+def test_finetune_switch_stops_the_model(tmp_path) -> None:
+    cfg = resolve_config(
+        "pimbrl/Pendulum-v0",
+        {"method": "pimbrl", "total_steps": 400, "warmup_steps": 50, "update_after": 100, "eval_every": 400, "eval_episodes": 2},
+        {"hidden": (16, 16), "batch_size": 16},
+        {"start_model_after": 100, "start_physics_after": 100, "model_steps": 1, "model_batch_size": 16,
+         "rollouts": 4, "threshold": 1e3, "validation_size": 32, "finetune_after": 250},
+    )  # fmt: skip
+    trainer = RecordingTrainer.create(cfg, str(tmp_path / "run"), progress=False)
+    trainer.run()
+    assert all(e["in_use"] for e in trainer.log if e["t"] < 250)
+    assert not any(e["in_use"] or e["model_trained"] for e in trainer.log if e["t"] >= 250)
+
+
+RESUME_DYNA = [
+    "cartpole", "--method", "pimbrl", "--steps", "800", "--warmup-steps", "100", "--update-after", "100",
+    "--eval-every", "200", "--eval-episodes", "4", "--checkpoint-every", "100", "--log-every", "100",
+    "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
+    "--dyna.threshold", "1e3", "--dyna.rollout-length", "30", *TINY, *SMALL_MODEL,
+]  # fmt: skip
+
+
+def test_kill_and_resume_in_the_middle_of_the_model_based_phase(tmp_path) -> None:
+    ref, killed = tmp_path / "ref", tmp_path / "killed"
+    assert main(["train", *RESUME_DYNA, "--run-dir", str(ref)]) == 0
+    proc = subprocess.Popen([sys.executable, "-m", "pimbrl.cli", "train", *RESUME_DYNA, "--run-dir", str(killed)])
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline:
+            rows = RunDirectory(killed).metrics([]).read() if (killed / "metrics.csv").exists() else []
+            # the model is trained, in use and imagining, and a checkpoint exists
+            if (killed / "checkpoints" / "latest.pt").exists() and rows and int(rows[-1]["imagined_total"]) > 0 and len(rows) >= 4:
+                break
+            if proc.poll() is not None:
+                pytest.fail("the training process ended before it could be killed")
+            time.sleep(0.05)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert json.loads((killed / "config.json").read_text())["status"] == "running"
+    assert main(["resume", str(killed), "--quiet"]) == 0
+    drop = ("wall_s", "steps_per_s", "time/model_train_s", "time/model_check_s", "time/imagine_s", "time/agent_update_s", "time/evaluate_s")
+    for name in ("evaluations.csv", "episodes.csv", "metrics.csv"):
+        assert _table(ref, name, drop) == _table(killed, name, drop), name
+
+
+def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
+    root = tmp_path / "cmp"
+    args = ["compare", "cartpole", "--methods", "mfrl,pimbrl,mfrl-matched", "--seeds", "0,1", "--run-dir", str(root), "--steps", "150"]
+    extra = ["--", "--warmup-steps", "50", "--update-after", "50", "--eval-every", "100", "--eval-episodes", "3",
+             "--dyna.start-model-after", "50", "--dyna.start-physics-after", "80", "--dyna.model-steps", "2",
+             "--dyna.rollout-length", "10", *TINY, *SMALL_MODEL]  # fmt: skip
+    assert main([*args[:-2], "--jobs", "2", *args[-2:], *extra]) == 0
+    out = capsys.readouterr().out
+    assert "steps ratio pimbrl/mfrl" in out
+    summary = json.loads((root / "summary.json").read_text())
+    assert {r["method"] for r in summary["runs"]} == {"mfrl", "pimbrl", "mfrl-matched"} and len(summary["runs"]) == 6
+    matched = resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl"}).utd
+    assert json.loads((root / "mfrl-matched" / "seed0" / "config.json").read_text())["config"]["utd"] == matched
+    assert (root / "curves.png").stat().st_size > 10_000 and (root / "summary.csv").exists()
+    mtime = (root / "pimbrl" / "seed1" / "evaluations.csv").stat().st_mtime
+    assert main(args + extra) == 0  # nothing to redo
+    assert (root / "pimbrl" / "seed1" / "evaluations.csv").stat().st_mtime == mtime
+
+
+def test_model_based_methods_need_a_physics_env(tmp_path, capsys) -> None:
+    assert main(["train", "Pendulum-v1", "--method", "pimbrl", "--run-dir", str(tmp_path / "r"), "--quiet"]) == 2
+    assert "needs a pimbrl environment" in capsys.readouterr().err
+
+
+def test_small_pool_is_used(ks_small_pools) -> None:
+    assert len(ks_small_pools[0].states) == SMALL_POOL.n_train
