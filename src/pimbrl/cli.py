@@ -46,10 +46,10 @@ def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
     return str(Path("runs") / short / f"{method}-{agent}-seed{seed}")
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
+def _train_config_from_args(args: argparse.Namespace):
     from .agents import AgentConfig
     from .simulate import resolve_env_id
-    from .training import DynaConfig, TrainConfig, create_trainer, resolve_config
+    from .training import DynaConfig, TrainConfig, resolve_config
 
     env_id = resolve_env_id(args.env)
     overrides = overrides_from_args(args, TrainConfig)
@@ -60,13 +60,38 @@ def _cmd_train(args: argparse.Namespace) -> int:
             overrides["env_kwargs"] = json.loads(args.env_kwargs)
         except json.JSONDecodeError as exc:
             raise ValueError(f'--env-kwargs must be a JSON object, e.g. \'{{"reward": "physical"}}\': {exc}') from None
-    cfg = resolve_config(
+    return resolve_config(
         env_id,
         overrides,
         overrides_from_args(args, AgentConfig, prefix="agent."),
         overrides_from_args(args, DynaConfig, prefix="dyna."),
     )
-    run_dir = args.run_dir or _default_run_dir(env_id, cfg.method, cfg.agent, cfg.seed)
+
+
+def build_train_config(argv: list[str]):
+    """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run (for sweeps).
+
+    Raises :class:`ConfigError` with the parser's message for arguments it cannot read.
+    """
+    import contextlib
+    import io
+
+    parser = build_parser()
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            args = parser.parse_args(["train", *argv])
+    except SystemExit:
+        lines = err.getvalue().strip().splitlines() or ["unreadable arguments"]
+        raise ConfigError(f"bad train arguments {' '.join(argv)!r}: {lines[-1]}") from None
+    return _train_config_from_args(args)
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .training import create_trainer
+
+    cfg = _train_config_from_args(args)
+    run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method, cfg.agent, cfg.seed)
     trainer = create_trainer(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"run directory: {run_dir}", file=sys.stderr)
     summary = trainer.run()
@@ -203,6 +228,26 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
     return 0
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from .experiments.sweep import load_sweep, plan_trials, run_sweep
+
+    spec = load_sweep(args.config)
+    for trial in plan_trials(spec, args.run_dir):  # every trial's configuration is checked before anything runs
+        build_train_config(list(trial.argv))
+    use_ray = False if args.no_ray else (True if args.address else None)
+    result = run_sweep(
+        spec, args.run_dir, use_ray=use_ray, address=args.address, num_cpus=args.cpus, log=lambda m: print(m, flush=True)
+    )
+    print(
+        f"{len(result['rows'])} trials with results, {result['executed']} run now; "
+        f"wrote {Path(args.run_dir) / 'results.csv'}, summary.json, curves.png"
+    )
+    if result["failed"]:
+        print(f"failed trials: {', '.join(result['failed'])}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -279,6 +324,19 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--steps", type=int, default=None, help="real steps of every run")
     cp.add_argument("--threshold", type=float, default=None, help="return that counts as solved (default: the preset's)")
     cp.set_defaults(func=_cmd_compare, takes_extra=True)
+
+    sw = sub.add_parser(
+        "sweep",
+        help="run a grid of trials (envs x methods x seeds x parameters) on Ray, resumable, with one table and figure",
+        description="Run the trials of a sweep file (JSON or TOML) on a local Ray instance (default when Ray is "
+        "installed), on a cluster (--address), or one after another in this process (--no-ray).",
+    )
+    sw.add_argument("config", help="sweep file (see pimbrl.experiments.sweep)")
+    sw.add_argument("--run-dir", required=True)
+    sw.add_argument("--address", default=None, help="address of an existing Ray cluster (e.g. ray://host:10001 or auto)")
+    sw.add_argument("--no-ray", action="store_true", help="run the trials one after another in this process")
+    sw.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all)")
+    sw.set_defaults(func=_cmd_sweep)
     return parser
 
 

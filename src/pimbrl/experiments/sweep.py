@@ -1,0 +1,321 @@
+"""`pimbrl sweep`: a grid of runs (environments x methods x seeds x parameter values) on Ray.
+
+A sweep file (JSON, or TOML on Python >= 3.11) describes the grid::
+
+    {
+      "name": "ks-rollout-length",
+      "envs": ["ks"],
+      "methods": ["pimbrl"],
+      "seeds": [0, 1],
+      "grid": {"dyna.rollout_length": [3, 8, 40, 120]},
+      "train_args": ["--steps", "60000"],
+      "threshold": -55
+    }
+
+``grid`` keys are configuration fields (``utd``, ``agent.gamma``, ``dyna.threshold``, ...); every
+combination of their values is one setting. Every (env, method, setting, seed) is one trial: a
+resumable run directory ``DIR/<env>/<method>/<setting>/seed<k>``. Finished trials are skipped (a
+finished sweep re-runs in no time), interrupted ones resume from their checkpoint, and a failed trial is
+reported without stopping the others.
+
+Trials run as Ray tasks (one CPU each) on a local Ray instance started for the sweep, or on an existing
+cluster with ``--address`` (the workers need pimbrl installed and the run directory on a shared file
+system). Without Ray, or with ``--no-ray``, they run one after another in this process: the outputs are
+the same, since a trial's result depends only on its configuration and seed. The results are aggregated
+into ``DIR/results.csv`` (one row per trial), ``DIR/summary.json`` and ``DIR/curves.png``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import ConfigError
+from ..training.rundir import atomic_write_bytes
+
+__all__ = ["SweepSpec", "Trial", "load_sweep", "plan_trials", "execute_trial", "run_sweep", "ray_available"]
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    name: str
+    envs: tuple[str, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    grid: dict[str, tuple[Any, ...]] = field(default_factory=dict)
+    train_args: tuple[str, ...] = ()
+    threshold: float | None = None
+
+
+@dataclass(frozen=True)
+class Trial:
+    env: str
+    method: str
+    seed: int
+    params: tuple[tuple[str, Any], ...]
+    path: str
+    argv: tuple[str, ...]  # `pimbrl train` arguments
+
+    @property
+    def setting(self) -> str:
+        return ",".join(f"{k}={v}" for k, v in self.params) or "default"
+
+    @property
+    def label(self) -> str:
+        return f"{self.env.split('/')[-1]} {self.method} {self.setting}"
+
+
+_KEYS = {"name", "envs", "methods", "seeds", "grid", "train_args", "threshold"}
+
+
+def load_sweep(path: str | Path) -> SweepSpec:
+    """Read and check a sweep file; errors name the file and the offending key."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"sweep file {path} does not exist")
+    text = path.read_text()
+    if path.suffix == ".toml":
+        try:
+            import tomllib
+        except ImportError:  # pragma: no cover - Python 3.10
+            raise ConfigError(f"{path}: TOML sweep files need Python >= 3.11; use JSON") from None
+        data = tomllib.loads(text)
+    else:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{path}: not valid JSON ({exc})") from None
+    unknown = set(data) - _KEYS
+    if unknown:
+        raise ConfigError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_KEYS))}")
+    for key in ("envs", "methods", "seeds"):
+        if not isinstance(data.get(key), list) or not data[key]:
+            raise ConfigError(f"{path}: '{key}' must be a non-empty list")
+    grid = data.get("grid", {})
+    if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
+        raise ConfigError(f"{path}: 'grid' must map configuration fields to non-empty lists of values")
+    return SweepSpec(
+        name=str(data.get("name", path.stem)),
+        envs=tuple(data["envs"]),
+        methods=tuple(data["methods"]),
+        seeds=tuple(int(s) for s in data["seeds"]),
+        grid={k: tuple(v) for k, v in grid.items()},
+        train_args=tuple(str(a) for a in data.get("train_args", [])),
+        threshold=None if data.get("threshold") is None else float(data["threshold"]),
+    )
+
+
+def _flag(key: str) -> str:
+    head, _, tail = key.rpartition(".")
+    return f"--{head + '.' if head else ''}{tail.replace('_', '-')}"
+
+
+def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
+    from ..simulate import resolve_env_id
+
+    root = Path(root).resolve()
+    keys = list(spec.grid)
+    trials = []
+    for env, method in itertools.product(spec.envs, spec.methods):
+        env_id = resolve_env_id(env)
+        for values in itertools.product(*(spec.grid[k] for k in keys)) if keys else [()]:
+            params = tuple(zip(keys, values))
+            setting = ",".join(f"{k}={v}" for k, v in params) or "default"
+            for seed in spec.seeds:
+                argv = [env_id, "--method", method, "--seed", str(seed), *spec.train_args]
+                for k, v in params:
+                    argv += [_flag(k), ",".join(map(str, v)) if isinstance(v, list) else str(v)]
+                if spec.threshold is not None:
+                    argv += ["--threshold", repr(spec.threshold)]
+                path = root / env_id.split("/")[-1] / method / setting / f"seed{seed}"
+                trials.append(Trial(env_id, method, seed, params, str(path), tuple(argv)))
+    return trials
+
+
+def _status(path: str) -> str | None:
+    cfg = Path(path) / "config.json"
+    if not cfg.exists():
+        return None
+    try:
+        return json.loads(cfg.read_text()).get("status")
+    except json.JSONDecodeError:
+        return None
+
+
+def execute_trial(trial: Trial) -> dict[str, Any]:
+    """Train (or resume) one trial in this process; never raises (a failure is returned)."""
+    from ..cli import build_train_config
+    from ..training import create_trainer, resume_trainer
+
+    try:
+        status = _status(trial.path)
+        if status == "finished":
+            return {"path": trial.path, "ok": True, "skipped": True}
+        if status is None:
+            trainer = create_trainer(build_train_config(list(trial.argv)), trial.path, progress=False)
+        else:
+            trainer = resume_trainer(trial.path, progress=False)
+        trainer.run()
+        return {"path": trial.path, "ok": True, "skipped": False}
+    except Exception as exc:  # reported, the other trials go on
+        return {"path": trial.path, "ok": False, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+
+
+def ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def run_sweep(
+    spec: SweepSpec,
+    root: str | Path,
+    use_ray: bool | None = None,
+    address: str | None = None,
+    num_cpus: int | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run the unfinished trials of ``spec`` and aggregate all of them into ``root``."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    trials = plan_trials(spec, root)
+    todo = [t for t in trials if _status(t.path) != "finished"]
+    if use_ray is None:
+        use_ray = ray_available()
+    if use_ray and not ray_available():
+        raise RuntimeError("Ray is not installed: pip install 'pimbrl[ray]', or run the sweep with --no-ray")
+    log(
+        f"sweep {spec.name}: {len(trials)} trials, {len(trials) - len(todo)} already finished, {len(todo)} to run"
+        + (" on Ray" if use_ray and todo else "")
+    )
+    outcomes: list[dict[str, Any]] = []
+    if todo and use_ray:
+        outcomes = _run_on_ray(todo, address, num_cpus, log)
+    else:
+        for trial in todo:
+            log(f"trial {trial.label} seed {trial.seed}")
+            outcomes.append(execute_trial(trial))
+    failed = [o for o in outcomes if not o["ok"]]
+    for o in failed:
+        log(f"FAILED {o['path']}: {o['error']}")
+    result = aggregate(spec, trials)
+    result["failed"] = [o["path"] for o in failed]
+    result["executed"] = sum(1 for o in outcomes if o["ok"] and not o.get("skipped"))
+    write_sweep_outputs(result, root, spec.name)
+    return result
+
+
+def _run_on_ray(
+    trials: Sequence[Trial], address: str | None, num_cpus: int | None, log: Callable[[str], None]
+) -> list[dict[str, Any]]:
+    import ray
+
+    started_here = not ray.is_initialized()
+    if started_here:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(execute_trial)
+        refs = {remote.remote(t): t for t in trials}
+        outcomes = []
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                trial = refs[ref]
+                try:
+                    outcome = ray.get(ref)
+                except Exception as exc:  # a worker that died
+                    outcome = {"path": trial.path, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+                log(f"{'done' if outcome['ok'] else 'failed'}: {trial.label} seed {trial.seed}")
+                outcomes.append(outcome)
+        return outcomes
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def aggregate(spec: SweepSpec, trials: Sequence[Trial]) -> dict[str, Any]:
+    """One row per trial that has evaluations, and per-setting means over seeds."""
+    from ..training import RunDirectory, steps_to_threshold
+
+    rows, curves = [], {}
+    for t in trials:
+        if _status(t.path) is None:
+            continue
+        run = RunDirectory(t.path)
+        evals = run.evaluations.read()
+        if not evals:
+            continue
+        payload = run.read_config()
+        threshold = spec.threshold if spec.threshold is not None else payload["config"].get("threshold")
+        rows.append(
+            {
+                "env": t.env,
+                "method": t.method,
+                "setting": t.setting,
+                "seed": t.seed,
+                "finished": payload.get("status") == "finished",
+                "steps": int(float(evals[-1]["step"])),
+                "steps_to_threshold": steps_to_threshold(evals, threshold),
+                "final_return": float(evals[-1]["return_mean"]),
+                "best_return": max(float(r["return_mean"]) for r in evals),
+                "wall_s": float(evals[-1]["wall_s"]),
+                "updates": int(float(evals[-1]["updates"])),
+            }
+        )
+        key = (t.env, t.method, t.setting)
+        curves.setdefault(key, []).append(
+            {k: np.array([float(r[k]) for r in evals]) for k in ("step", "return_mean", "return_min", "return_max")}
+        )
+    return {"name": spec.name, "threshold": spec.threshold, "rows": rows, "curves": curves}
+
+
+def write_sweep_outputs(result: dict[str, Any], root: Path, title: str) -> None:
+    from ..plotting import plot_learning_curves
+
+    cols = [
+        "env",
+        "method",
+        "setting",
+        "seed",
+        "finished",
+        "steps",
+        "steps_to_threshold",
+        "final_return",
+        "best_return",
+        "wall_s",
+        "updates",
+    ]
+    lines = [",".join(cols)]
+    for r in sorted(result["rows"], key=lambda r: (r["env"], r["method"], r["setting"], r["seed"])):
+        lines.append(",".join('"' + str(r[c]) + '"' if c == "setting" else ("" if r[c] is None else str(r[c])) for c in cols))
+    atomic_write_bytes(root / "results.csv", ("\n".join(lines) + "\n").encode())
+    summary = {k: v for k, v in result.items() if k != "curves"}
+    atomic_write_bytes(root / "summary.json", (json.dumps(summary, indent=2, default=str) + "\n").encode())
+    if not result["curves"]:
+        return
+    plotted = []
+    for (env, method, setting), runs in result["curves"].items():
+        n = min(len(c["step"]) for c in runs)
+        plotted.append(
+            (
+                f"{env.split('/')[-1]} {method} {setting} ({len(runs)} seeds)",
+                runs[0]["step"][:n],
+                np.mean([c["return_mean"][:n] for c in runs], axis=0),
+                np.min([c["return_min"][:n] for c in runs], axis=0),
+                np.max([c["return_max"][:n] for c in runs], axis=0),
+            )
+        )
+    plot_learning_curves(plotted, root / "curves.png", title=title, threshold=result["threshold"])
