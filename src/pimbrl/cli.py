@@ -125,7 +125,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
     from .training import Evaluator, resume_trainer, steps_to_threshold
 
-    trainer = resume_trainer(args.run_dir, progress=False)
+    trainer = resume_trainer(args.run_dir, progress=False, inspect_only=True)
     if not trainer.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
     cfg = trainer.cfg
@@ -190,11 +190,16 @@ def _cmd_model_eval(args: argparse.Namespace) -> int:
 
 
 def _seed_list(text: str) -> list[int]:
-    """``"3"`` means seeds 0, 1, 2; ``"0,4,7"`` those seeds."""
+    """``"3"`` means seeds 0, 1, 2; ``"0,4,7"`` those seeds; ``"5,"`` seed 5 alone."""
     try:
-        return [int(s) for s in text.split(",")] if "," in text else list(range(int(text)))
+        seeds = [int(s) for s in text.split(",") if s.strip()] if "," in text else list(range(int(text)))
     except ValueError:
-        raise ValueError(f"--seeds must be a count (e.g. 3) or a comma-separated list (e.g. 0,1,2), got {text!r}") from None
+        seeds = None
+    if not seeds:
+        raise ValueError(
+            f"--seeds must be a count >= 1 (e.g. 3 for seeds 0,1,2) or a list (e.g. 0,1,2, or 5, for seed 5 alone), got {text!r}"
+        )
+    return seeds
 
 
 def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
@@ -245,6 +250,29 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     if result["failed"]:
         print(f"failed trials: {', '.join(result['failed'])}", file=sys.stderr)
         return 1
+    return 0
+
+
+FIGURES = ("ks-contours", "burgers", "model-errors", "rollouts", "curves")
+
+
+def _cmd_figure(args: argparse.Namespace) -> int:
+    from .experiments import figures
+
+    out = Path(args.out) if args.out else Path(args.dirs[0]) / f"{args.kind}.png"
+    if args.kind != "curves" and len(args.dirs) != 1:
+        raise ValueError(f"`pimbrl figure {args.kind}` takes one directory, got {len(args.dirs)}")
+    if args.kind == "ks-contours":
+        figures.ks_contours(args.dirs[0], out)
+    elif args.kind == "burgers":
+        figures.burgers_episodes(args.dirs[0], out)
+    elif args.kind == "model-errors":
+        figures.model_error_histograms(args.dirs[0], out)
+    elif args.kind == "rollouts":
+        figures.rollout_snapshots(args.dirs[0], out, lengths=[int(v) for v in args.lengths.split(",")])
+    else:
+        return _cmd_plot(argparse.Namespace(run_dirs=args.dirs, out=str(out), labels=None))
+    print(f"figure: {out}")
     return 0
 
 
@@ -337,6 +365,20 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--no-ray", action="store_true", help="run the trials one after another in this process")
     sw.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all)")
     sw.set_defaults(func=_cmd_sweep)
+
+    fg = sub.add_parser(
+        "figure",
+        help="the paper's figures from run directories",
+        description="ks-contours RUN: KS space-time contours, one uncontrolled and three controlled test episodes; "
+        "burgers RUN: Burgers state surfaces with random and learned control, with actions and rewards; "
+        "model-errors DIR: histograms of a `pimbrl model-eval` directory; rollouts RUN: model-predicted KS "
+        "states after l_M model steps against the true environment (mbrl/pimbrl runs); curves RUN...: learning curves.",
+    )
+    fg.add_argument("kind", choices=FIGURES)
+    fg.add_argument("dirs", nargs="+", help="run directory (several for curves)")
+    fg.add_argument("--out", default=None, help="PNG path (default: <dir>/<kind>.png)")
+    fg.add_argument("--lengths", default="3,8,40,120", help="rollouts: rollout lengths to show")
+    fg.set_defaults(func=_cmd_figure)
     return parser
 
 

@@ -99,15 +99,20 @@ class Trainer:
         return cls(cfg, run_dir, progress)
 
     @classmethod
-    def resume(cls, path: str, progress: bool = True) -> Trainer:
-        """Reopen the run in ``path`` at its last checkpoint (or from the start if it has none)."""
+    def resume(cls, path: str, progress: bool = True, inspect_only: bool = False) -> Trainer:
+        """Reopen the run in ``path`` at its last checkpoint (or from the start if it has none).
+
+        To continue training, the logs are cut back to the checkpoint. ``inspect_only`` loads the state
+        without touching any file (for evaluation and figures, also of a run still in progress).
+        """
         run_dir = RunDirectory(path)
         payload = run_dir.read_config()
         cfg = from_dict(TrainConfig, payload["config"])
         trainer = cls(cfg, run_dir, progress)
         if run_dir.checkpoint_path.exists():
             trainer.load_state(run_dir.load_checkpoint())
-        run_dir.truncate_logs(trainer.t)
+        if not inspect_only:
+            run_dir.truncate_logs(trainer.t)
         return trainer
 
     @property

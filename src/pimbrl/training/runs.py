@@ -21,7 +21,7 @@ def create_trainer(cfg: TrainConfig, path: str, progress: bool = True, command: 
     return trainer_class(cfg.method).create(cfg, path, progress=progress, command=command)
 
 
-def resume_trainer(path: str, progress: bool = True) -> Trainer:
-    """The run in ``path``, at its last checkpoint."""
+def resume_trainer(path: str, progress: bool = True, inspect_only: bool = False) -> Trainer:
+    """The run in ``path``, at its last checkpoint (``inspect_only``: read it without changing any file)."""
     cfg = from_dict(TrainConfig, RunDirectory(path).read_config()["config"])
-    return trainer_class(cfg.method).resume(path, progress=progress)
+    return trainer_class(cfg.method).resume(path, progress=progress, inspect_only=inspect_only)
