@@ -3,11 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 
 import pytest
 
@@ -15,7 +10,7 @@ from pimbrl.cli import main
 from pimbrl.training import DynaTrainer, RunDirectory, resolve_config
 
 from .conftest import SMALL_POOL
-from .test_training import POOL, TINY, _table
+from .test_training import POOL, TINY, _table, kill_when
 
 SMALL_MODEL = ["--dyna.model-batch-size", "32", "--dyna.rollouts", "16", "--dyna.validation-size", "64"]
 DYNA_SMOKE = {
@@ -132,32 +127,40 @@ RESUME_DYNA = [
 def test_kill_and_resume_in_the_middle_of_the_model_based_phase(tmp_path) -> None:
     ref, killed = tmp_path / "ref", tmp_path / "killed"
     assert main(["train", *RESUME_DYNA, "--run-dir", str(ref)]) == 0
-    proc = subprocess.Popen([sys.executable, "-m", "pimbrl.cli", "train", *RESUME_DYNA, "--run-dir", str(killed)])
-    deadline = time.time() + 300
-    try:
-        while time.time() < deadline:
-            rows = RunDirectory(killed).metrics([]).read() if (killed / "metrics.csv").exists() else []
-            # the model is trained, in use and imagining, and a checkpoint exists
-            if (killed / "checkpoints" / "latest.pt").exists() and rows and int(rows[-1]["imagined_total"]) > 0 and len(rows) >= 4:
-                break
-            if proc.poll() is not None:
-                pytest.fail("the training process ended before it could be killed")
-            time.sleep(0.05)
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert json.loads((killed / "config.json").read_text())["status"] == "running"
+
+    def ready(run) -> bool:  # the model is trained, in use and imagining, and a checkpoint exists
+        rows = RunDirectory(run).metrics([]).read() if (run / "metrics.csv").exists() else []
+        return (run / "checkpoints" / "latest.pt").exists() and len(rows) >= 4 and int(rows[-1]["imagined_total"]) > 0
+
+    kill_when(RESUME_DYNA, killed, ready)
     assert main(["resume", str(killed), "--quiet"]) == 0
-    drop = ("wall_s", "steps_per_s", "time/model_train_s", "time/model_check_s", "time/imagine_s", "time/agent_update_s", "time/evaluate_s")
+    drop = (
+        "wall_s",
+        "steps_per_s",
+        "time/model_train_s",
+        "time/model_check_s",
+        "time/imagine_s",
+        "time/agent_update_s",
+        "time/evaluate_s",
+    )
     for name in ("evaluations.csv", "episodes.csv", "metrics.csv"):
         assert _table(ref, name, drop) == _table(killed, name, drop), name
 
 
 def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
     root = tmp_path / "cmp"
-    args = ["compare", "cartpole", "--methods", "mfrl,pimbrl,mfrl-matched", "--seeds", "0,1", "--run-dir", str(root), "--steps", "150"]
+    args = [
+        "compare",
+        "cartpole",
+        "--methods",
+        "mfrl,pimbrl,mfrl-matched",
+        "--seeds",
+        "0,1",
+        "--run-dir",
+        str(root),
+        "--steps",
+        "150",
+    ]
     extra = ["--", "--warmup-steps", "50", "--update-after", "50", "--eval-every", "100", "--eval-episodes", "3",
              "--dyna.start-model-after", "50", "--dyna.start-physics-after", "80", "--dyna.model-steps", "2",
              "--dyna.rollout-length", "10", *TINY, *SMALL_MODEL]  # fmt: skip

@@ -19,7 +19,14 @@ TRIAL_ARGS = ["--steps", "200", "--warmup-steps", "100", "--update-after", "100"
 
 def _sweep_file(tmp_path, name: str = "tiny") -> str:
     path = tmp_path / f"{name}.json"
-    spec = {"name": name, "envs": ["pendulum"], "methods": ["mfrl"], "seeds": [0], "grid": {"agent.gamma": [0.9, 0.99]}, "train_args": TRIAL_ARGS}
+    spec = {
+        "name": name,
+        "envs": ["pendulum"],
+        "methods": ["mfrl"],
+        "seeds": [0],
+        "grid": {"agent.gamma": [0.9, 0.99]},
+        "train_args": TRIAL_ARGS,
+    }
     path.write_text(json.dumps(spec))
     return str(path)
 
@@ -74,7 +81,18 @@ def tiny_runs(tmp_path_factory):
         "ks": ["train", "ks", *SMOKE["ks"], *TINY],
         "ks-pimbrl": ["train", "ks", "--method", "pimbrl", *DYNA_SMOKE["ks"], *TINY, *SMALL_MODEL],
         "burgers": ["train", "burgers", *SMOKE["burgers"], *TINY],
-        "model-eval": ["model-eval", "pendulum", "--transitions", "200", "--test-transitions", "30", "--steps", "20", "--refresh-every", "10"],
+        "model-eval": [
+            "model-eval",
+            "pendulum",
+            "--transitions",
+            "200",
+            "--test-transitions",
+            "30",
+            "--steps",
+            "20",
+            "--refresh-every",
+            "10",
+        ],
     }
     for name, args in runs.items():
         assert main([*args, "--run-dir", str(root / name)]) == 0, name
@@ -82,7 +100,8 @@ def tiny_runs(tmp_path_factory):
 
 
 @pytest.mark.parametrize(
-    ("kind", "run"), [("ks-contours", "ks"), ("burgers", "burgers"), ("model-errors", "model-eval"), ("rollouts", "ks-pimbrl"), ("curves", "ks")]
+    ("kind", "run"),
+    [("ks-contours", "ks"), ("burgers", "burgers"), ("model-errors", "model-eval"), ("rollouts", "ks-pimbrl"), ("curves", "ks")],
 )
 def test_each_figure_command_writes_a_png(kind: str, run: str, tiny_runs, tmp_path) -> None:
     out = tmp_path / f"{kind}.png"

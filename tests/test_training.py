@@ -128,17 +128,15 @@ def _table(path: Path, name: str, drop: tuple[str, ...] = ("wall_s", "steps_per_
         return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(fh)]
 
 
-def test_kill_minus_nine_and_resume_equals_uninterrupted(tmp_path) -> None:
-    ref, killed = tmp_path / "ref", tmp_path / "killed"
-    assert main(["train", *RESUME_ARGS, "--run-dir", str(ref)]) == 0
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "pimbrl.cli", "train", *RESUME_ARGS, "--run-dir", str(killed)], env=env)
-    ckpt = killed / "checkpoints" / "latest.pt"
+def kill_when(args: list[str], run: Path, ready) -> None:
+    """Start `pimbrl train <args> --run-dir <run>` in a process and SIGKILL it once ``ready(run)`` holds."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pimbrl.cli", "train", *args, "--run-dir", str(run)], env={**os.environ, "PYTHONUNBUFFERED": "1"}
+    )
     deadline = time.time() + 300
     try:
         while time.time() < deadline:
-            rows = RunDirectory(killed).evaluations.read() if (killed / "evaluations.csv").exists() else []
-            if ckpt.exists() and len(rows) >= 4:
+            if ready(run):
                 break
             if proc.poll() is not None:
                 pytest.fail("the training process ended before it could be killed")
@@ -148,8 +146,18 @@ def test_kill_minus_nine_and_resume_equals_uninterrupted(tmp_path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
-    status = json.loads((killed / "config.json").read_text())["status"]
-    assert status == "running", "the run finished before the kill; make it longer"
+    assert json.loads((run / "config.json").read_text())["status"] == "running", "the run finished before the kill"
+
+
+def test_kill_minus_nine_and_resume_equals_uninterrupted(tmp_path) -> None:
+    ref, killed = tmp_path / "ref", tmp_path / "killed"
+    assert main(["train", *RESUME_ARGS, "--run-dir", str(ref)]) == 0
+
+    def ready(run: Path) -> bool:
+        rows = RunDirectory(run).evaluations.read() if (run / "evaluations.csv").exists() else []
+        return (run / "checkpoints" / "latest.pt").exists() and len(rows) >= 4
+
+    kill_when(RESUME_ARGS, killed, ready)
     assert main(["resume", str(killed), "--quiet"]) == 0
     for name in ("evaluations.csv", "episodes.csv", "metrics.csv"):
         assert _table(ref, name) == _table(killed, name), name

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from .simulate import EpisodeRecord
 
-__all__ = ["plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "STATE_LABELS"]
+__all__ = ["plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band", "STATE_LABELS"]
 
 STATE_LABELS = {
     "pimbrl/CartPole-v0": ["x", "x_dot", "theta", "theta_dot"],
@@ -108,6 +108,22 @@ def plot_episode(
     axes[2].set_xlabel("time")
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def seed_band(
+    label: str, curves: Sequence[dict[str, Sequence[float]]]
+) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One curve from several seeds' evaluations (dicts with ``step``, ``return_mean``, ``return_min``,
+    ``return_max``): the mean over seeds of the mean return, and the band from the lowest to the highest
+    test episode of any seed, over the steps all seeds reached."""
+    n = min(len(c["step"]) for c in curves)
+    return (
+        f"{label} ({len(curves)} seed{'s' if len(curves) > 1 else ''})",
+        np.asarray(curves[0]["step"][:n]),
+        np.mean([np.asarray(c["return_mean"][:n]) for c in curves], axis=0),
+        np.min([np.asarray(c["return_min"][:n]) for c in curves], axis=0),
+        np.max([np.asarray(c["return_max"][:n]) for c in curves], axis=0),
+    )
 
 
 def plot_learning_curves(

@@ -144,6 +144,21 @@ class Agent(ABC):
         for k, s in state["modules"].items():
             modules[k].load_state_dict(s)
 
+    def _critic_step(self, batch: Batch, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step of ``self.critic`` (an ensemble) towards ``target``: the loss is the sum over the members
+        of their mean squared TD errors. Returns ``(loss, q)``, detached."""
+        q = self.critic(batch.obs, batch.action)
+        loss = (q - target).pow(2).mean(dim=1).sum()
+        self._check_finite(loss, "the critic loss")
+        self.critic_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.critic_opt.step()
+        return loss.detach(), q.detach()
+
+    def _td_target(self, batch: Batch, q_next: torch.Tensor) -> torch.Tensor:
+        """``r + gamma (1 - terminated) q_next``: a time-limit truncation still bootstraps."""
+        return batch.reward + self.config.gamma * (1.0 - batch.terminated) * q_next
+
     @staticmethod
     def _check_finite(loss: torch.Tensor, what: str) -> None:
         if not torch.isfinite(loss):

@@ -61,13 +61,8 @@ class SAC(Agent):
         with torch.no_grad():
             next_a, next_logp = self.actor(batch.next_obs, generator=self.generator)
             q_next = self.critic_targ(batch.next_obs, next_a).min(dim=0).values - alpha * next_logp
-            target = batch.reward + cfg.gamma * (1.0 - batch.terminated) * q_next
-        q = self.critic(batch.obs, batch.action)
-        critic_loss = (q - target).pow(2).mean(dim=1).sum()
-        self._check_finite(critic_loss, "the critic loss")
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_opt.step()
+            target = self._td_target(batch, q_next)
+        critic_loss, q = self._critic_step(batch, target)
 
         a, logp = self.actor(batch.obs, generator=self.generator)
         with frozen(self.critic):
@@ -77,9 +72,9 @@ class SAC(Agent):
         self.actor_opt.step()
 
         metrics = {
-            "agent/critic_loss": critic_loss.detach(),
+            "agent/critic_loss": critic_loss,
             "agent/actor_loss": actor_loss.detach(),
-            "agent/q_mean": q.detach().mean(),
+            "agent/q_mean": q.mean(),
             "agent/entropy": -logp.detach().mean(),
             "agent/alpha": alpha,
         }

@@ -72,16 +72,10 @@ class TD3(Agent):
             if self._smoothing:
                 noise = torch.randn(next_a.shape, generator=self.generator) * cfg.target_noise
                 next_a = (next_a + noise.clamp(-cfg.noise_clip, cfg.noise_clip)).clamp(-1.0, 1.0)
-            q_next = self.critic_targ(batch.next_obs, next_a).min(dim=0).values
-            target = batch.reward + cfg.gamma * (1.0 - batch.terminated) * q_next
-        q = self.critic(batch.obs, batch.action)
-        critic_loss = (q - target).pow(2).mean(dim=1).sum()
-        self._check_finite(critic_loss, "the critic loss")
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_opt.step()
+            target = self._td_target(batch, self.critic_targ(batch.next_obs, next_a).min(dim=0).values)
+        critic_loss, q = self._critic_step(batch, target)
         self.n_updates += 1
-        metrics = {"agent/critic_loss": critic_loss.detach(), "agent/q_mean": q.detach().mean()}
+        metrics = {"agent/critic_loss": critic_loss, "agent/q_mean": q.mean()}
         if self.n_updates % self._delay == 0:
             with frozen(self.critic):
                 actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs)).mean()

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..training import RunDirectory, resolve_config, steps_to_threshold
+from ..training import RunDirectory, resolve_config
 from ..training.rundir import atomic_write_bytes
 
 __all__ = ["COMPARE_METHODS", "RunSpec", "compare", "summarize_runs", "plan_runs", "run_all"]
@@ -58,21 +58,11 @@ def plan_runs(env_id: str, methods: Sequence[str], seeds: Sequence[int], root: P
     return specs
 
 
-def _status(path: Path) -> str | None:
-    cfg = path / "config.json"
-    if not cfg.exists():
-        return None
-    try:
-        return json.loads(cfg.read_text()).get("status")
-    except json.JSONDecodeError:
-        return None
-
-
 def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] = print) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs."""
     pending = []
     for spec in specs:
-        status = _status(spec.path)
+        status = RunDirectory(spec.path).status
         if status == "finished":
             continue
         if status is None:
@@ -101,38 +91,13 @@ def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] 
     return failed
 
 
-def _curve(rows: list[dict[str, str]], name: str) -> np.ndarray:
-    return np.array([float(r[name]) for r in rows])
-
-
 def summarize_runs(specs: Sequence[RunSpec], threshold: float | None) -> dict[str, Any]:
     """Per-run and per-method results of finished (or partly finished) runs."""
     runs = []
     for spec in specs:
-        if _status(spec.path) is None:
-            continue
-        run = RunDirectory(spec.path)
-        rows = run.evaluations.read()
-        if not rows:
-            continue
-        payload = run.read_config()
-        summary = payload.get("summary") or {}
-        steps = int(float(rows[-1]["step"]))
-        runs.append(
-            {
-                "method": spec.label,
-                "seed": spec.seed,
-                "finished": payload.get("status") == "finished",
-                "steps": steps,
-                "steps_to_threshold": steps_to_threshold(rows, threshold),
-                "final_return": float(rows[-1]["return_mean"]),
-                "best_return": max(float(r["return_mean"]) for r in rows),
-                "wall_s": summary.get("wall_s", float(rows[-1]["wall_s"])),
-                "updates": int(float(rows[-1]["updates"])),
-                "update_to_data": int(float(rows[-1]["updates"])) / max(steps, 1),
-                "curve": {k: _curve(rows, k).tolist() for k in ("step", "return_mean", "return_min", "return_max")},
-            }
-        )
+        result = RunDirectory(spec.path).result(threshold)
+        if result is not None:
+            runs.append({"method": spec.label, "seed": spec.seed, **result})
     methods: dict[str, dict[str, Any]] = {}
     for label in dict.fromkeys(r["method"] for r in runs):
         mine = [r for r in runs if r["method"] == label]
@@ -185,17 +150,9 @@ def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
 
 
 def plot_method_curves(result: dict[str, Any], path: Path, title: str) -> None:
-    from ..plotting import plot_learning_curves
+    from ..plotting import plot_learning_curves, seed_band
 
-    curves = []
-    for label in result["methods"]:
-        mine = [r["curve"] for r in result["runs"] if r["method"] == label]
-        n = min(len(c["step"]) for c in mine)
-        steps = np.array(mine[0]["step"][:n])
-        mean = np.mean([c["return_mean"][:n] for c in mine], axis=0)
-        low = np.min([c["return_min"][:n] for c in mine], axis=0)
-        high = np.max([c["return_max"][:n] for c in mine], axis=0)
-        curves.append((f"{label} ({len(mine)} seeds)", steps, mean, low, high))
+    curves = [seed_band(label, [r["curve"] for r in result["runs"] if r["method"] == label]) for label in result["methods"]]
     plot_learning_curves(curves, path, title=title, threshold=result["threshold"])
 
 

@@ -35,10 +35,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..config import ConfigError
-from ..training.rundir import atomic_write_bytes
+from ..training.rundir import RunDirectory, atomic_write_bytes
 
 __all__ = ["SweepSpec", "Trial", "load_sweep", "plan_trials", "execute_trial", "run_sweep", "ray_available"]
 
@@ -139,23 +137,13 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
     return trials
 
 
-def _status(path: str) -> str | None:
-    cfg = Path(path) / "config.json"
-    if not cfg.exists():
-        return None
-    try:
-        return json.loads(cfg.read_text()).get("status")
-    except json.JSONDecodeError:
-        return None
-
-
 def execute_trial(trial: Trial) -> dict[str, Any]:
     """Train (or resume) one trial in this process; never raises (a failure is returned)."""
     from ..cli import build_train_config
-    from ..training import create_trainer, resume_trainer
+    from ..training import RunDirectory, create_trainer, resume_trainer
 
     try:
-        status = _status(trial.path)
+        status = RunDirectory(trial.path).status
         if status == "finished":
             return {"path": trial.path, "ok": True, "skipped": True}
         if status is None:
@@ -188,7 +176,7 @@ def run_sweep(
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     trials = plan_trials(spec, root)
-    todo = [t for t in trials if _status(t.path) != "finished"]
+    todo = [t for t in trials if RunDirectory(t.path).status != "finished"]
     if use_ray is None:
         use_ray = ray_available()
     if use_ray and not ray_available():
@@ -247,43 +235,20 @@ def _run_on_ray(
 
 
 def aggregate(spec: SweepSpec, trials: Sequence[Trial]) -> dict[str, Any]:
-    """One row per trial that has evaluations, and per-setting means over seeds."""
-    from ..training import RunDirectory, steps_to_threshold
-
+    """One row per trial that has evaluations, and the curves of every setting (for means over seeds)."""
     rows, curves = [], {}
     for t in trials:
-        if _status(t.path) is None:
+        result = RunDirectory(t.path).result(spec.threshold)
+        if result is None:
             continue
-        run = RunDirectory(t.path)
-        evals = run.evaluations.read()
-        if not evals:
-            continue
-        payload = run.read_config()
-        threshold = spec.threshold if spec.threshold is not None else payload["config"].get("threshold")
-        rows.append(
-            {
-                "env": t.env,
-                "method": t.method,
-                "setting": t.setting,
-                "seed": t.seed,
-                "finished": payload.get("status") == "finished",
-                "steps": int(float(evals[-1]["step"])),
-                "steps_to_threshold": steps_to_threshold(evals, threshold),
-                "final_return": float(evals[-1]["return_mean"]),
-                "best_return": max(float(r["return_mean"]) for r in evals),
-                "wall_s": float(evals[-1]["wall_s"]),
-                "updates": int(float(evals[-1]["updates"])),
-            }
-        )
-        key = (t.env, t.method, t.setting)
-        curves.setdefault(key, []).append(
-            {k: np.array([float(r[k]) for r in evals]) for k in ("step", "return_mean", "return_min", "return_max")}
-        )
+        curve = result.pop("curve")
+        rows.append({"env": t.env, "method": t.method, "setting": t.setting, "seed": t.seed, **result})
+        curves.setdefault((t.env, t.method, t.setting), []).append(curve)
     return {"name": spec.name, "threshold": spec.threshold, "rows": rows, "curves": curves}
 
 
 def write_sweep_outputs(result: dict[str, Any], root: Path, title: str) -> None:
-    from ..plotting import plot_learning_curves
+    from ..plotting import plot_learning_curves, seed_band
 
     cols = [
         "env",
@@ -306,16 +271,7 @@ def write_sweep_outputs(result: dict[str, Any], root: Path, title: str) -> None:
     atomic_write_bytes(root / "summary.json", (json.dumps(summary, indent=2, default=str) + "\n").encode())
     if not result["curves"]:
         return
-    plotted = []
-    for (env, method, setting), runs in result["curves"].items():
-        n = min(len(c["step"]) for c in runs)
-        plotted.append(
-            (
-                f"{env.split('/')[-1]} {method} {setting} ({len(runs)} seeds)",
-                runs[0]["step"][:n],
-                np.mean([c["return_mean"][:n] for c in runs], axis=0),
-                np.min([c["return_min"][:n] for c in runs], axis=0),
-                np.max([c["return_max"][:n] for c in runs], axis=0),
-            )
-        )
+    plotted = [
+        seed_band(f"{env.split('/')[-1]} {method} {setting}", runs) for (env, method, setting), runs in result["curves"].items()
+    ]
     plot_learning_curves(plotted, root / "curves.png", title=title, threshold=result["threshold"])

@@ -175,6 +175,42 @@ class RunDirectory:
             raise FileNotFoundError(f"{self.path} is not a pimbrl run directory (no config.json)")
         return json.loads(self.config_path.read_text())
 
+    @property
+    def status(self) -> str | None:
+        """``"running"``, ``"finished"``, or ``None`` where there is no readable run."""
+        try:
+            return self.read_config().get("status")
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def result(self, threshold: float | None = None) -> dict[str, Any] | None:
+        """What a run has reached so far (``None`` without evaluations): steps, steps to ``threshold``
+        (default: the run's own), final and best mean test return, wall-clock, updates and its curves."""
+        from .loop import steps_to_threshold
+
+        if self.status is None:
+            return None
+        rows = self.evaluations.read()
+        if not rows:
+            return None
+        payload = self.read_config()
+        if threshold is None:
+            threshold = payload["config"].get("threshold")
+        steps = int(float(rows[-1]["step"]))
+        updates = int(float(rows[-1]["updates"]))
+        summary = payload.get("summary") or {}
+        return {
+            "finished": payload.get("status") == "finished",
+            "steps": steps,
+            "steps_to_threshold": steps_to_threshold(rows, threshold),
+            "final_return": float(rows[-1]["return_mean"]),
+            "best_return": max(float(r["return_mean"]) for r in rows),
+            "wall_s": float(summary.get("wall_s", rows[-1]["wall_s"])),
+            "updates": updates,
+            "update_to_data": updates / max(steps, 1),
+            "curve": {k: [float(r[k]) for r in rows] for k in ("step", "return_mean", "return_min", "return_max")},
+        }
+
     def update_status(self, **fields: Any) -> None:
         payload = self.read_config()
         payload.update(fields)
