@@ -115,3 +115,23 @@ def test_each_figure_command_writes_a_png(kind: str, run: str, tiny_runs, tmp_pa
 def test_rollout_figure_needs_a_model(tiny_runs, tmp_path, capsys) -> None:
     assert main(["figure", "rollouts", str(tiny_runs / "ks"), "--out", str(tmp_path / "r.png")]) == 2
     assert "without a model" in capsys.readouterr().err
+
+
+def test_shipped_sweep_files_plan_valid_trials(tmp_path) -> None:
+    from pathlib import Path
+
+    from pimbrl.cli import build_train_config
+    from pimbrl.experiments.sweep import plan_trials
+
+    configs = sorted((Path(__file__).parent.parent / "configs").glob("*.json"))
+    assert configs
+    for path in configs:
+        trials = plan_trials(load_sweep(path), tmp_path)
+        assert trials
+        for trial in trials:
+            cfg = build_train_config(list(trial.argv))
+            assert cfg.method == trial.method and cfg.seed == trial.seed
+            for key, value in trial.params:
+                section, _, name = key.rpartition(".")
+                holder = {"": cfg, "dyna": cfg.dyna, "agent": cfg.agent_config}[section]
+                assert getattr(holder, name) == value
