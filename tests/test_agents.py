@@ -149,3 +149,12 @@ def test_action_adapter_mappings() -> None:
     assert multi.dim == 3 and multi.to_env(np.array([0.1, 0.9, -1.0])) == 2
     with pytest.raises(ValueError, match="bounded"):
         ActionAdapter(spaces.Box(-np.inf, np.inf, (1,)))
+
+
+def test_replay_buffer_keeps_the_newest_rows_of_an_oversized_batch() -> None:
+    buf = ReplayBuffer(5, 1, 1, extras={"k": (1,)})
+    buf.add(np.zeros(2), np.zeros(2), np.zeros(2), np.zeros(2), np.zeros(2), np.zeros(2), k=np.zeros(2))
+    buf.add(np.arange(8.0), np.zeros(8), np.arange(8.0), np.zeros(8), np.zeros(8), np.zeros(8), k=np.arange(8.0))
+    assert len(buf) == 5 and buf.total_added == 10
+    assert sorted(buf.reward.tolist()) == [3.0, 4.0, 5.0, 6.0, 7.0]
+    assert sorted(buf.extras["k"][:, 0].tolist()) == [3.0, 4.0, 5.0, 6.0, 7.0]

@@ -232,3 +232,20 @@ def test_existing_run_dir_and_unknown_env(tmp_path, capsys) -> None:
     assert "unknown environment" in capsys.readouterr().err
     assert main(["resume", str(tmp_path / "missing")]) == 2
     assert "not a pimbrl run directory" in capsys.readouterr().err
+
+
+def test_none_on_the_command_line_clears_a_preset_value() -> None:
+    from pimbrl.cli import build_train_config
+
+    cfg = build_train_config(["ks", "--method", "pimbrl", "--dyna.finetune-return", "none", "--threshold", "none"])
+    assert cfg.dyna.finetune_return is None and cfg.threshold is None
+    preset = build_train_config(["ks", "--method", "pimbrl"])
+    assert preset.dyna.finetune_return == -55.0 and preset.threshold == -55.0
+
+
+def test_a_run_that_cannot_start_leaves_no_directory(tmp_path, capsys) -> None:
+    run = tmp_path / "r"
+    assert main(["train", "Pendulum-v1", "--method", "pimbrl", "--run-dir", str(run), "--quiet"]) == 2
+    assert "needs a pimbrl environment" in capsys.readouterr().err
+    assert not (run / "config.json").exists()
+    assert main(["train", "Pendulum-v1", "--run-dir", str(run), *SMOKE["Pendulum-v1"], *TINY]) == 0

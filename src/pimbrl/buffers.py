@@ -88,8 +88,19 @@ class ReplayBuffer:
                 raise ValueError(f"refusing to store a non-finite {name} in the replay buffer")
         term_t = torch.as_tensor(np.asarray(terminated, dtype=np.float32)).reshape(n)
         trunc_t = torch.as_tensor(np.asarray(truncated, dtype=np.float32)).reshape(n)
-        if n > self.capacity:
-            raise ValueError(f"cannot add {n} transitions to a buffer of capacity {self.capacity}")
+        missing = set(self.extras) - set(extras)
+        if missing or set(extras) - set(self.extras):
+            raise ValueError(f"extras must be exactly {sorted(self.extras)}, got {sorted(extras)}")
+        extras_t = {
+            k: torch.as_tensor(np.asarray(v, dtype=np.float32)).reshape(n, *self.extras[k].shape[1:]) for k, v in extras.items()
+        }
+        skip = max(0, n - self.capacity)  # more rows than the ring holds: only the newest are kept
+        if skip:
+            obs_t, act_t, rew_t, nxt_t, term_t, trunc_t = (t[skip:] for t in (obs_t, act_t, rew_t, nxt_t, term_t, trunc_t))
+            extras_t = {k: v[skip:] for k, v in extras_t.items()}
+            self.pos = int((self.pos + skip) % self.capacity)
+            self.total_added += skip
+            n -= skip
         idx = (self.pos + torch.arange(n)) % self.capacity
         self.obs[idx] = obs_t
         self.action[idx] = act_t
@@ -97,11 +108,8 @@ class ReplayBuffer:
         self.next_obs[idx] = nxt_t
         self.terminated[idx] = term_t
         self.truncated[idx] = trunc_t
-        missing = set(self.extras) - set(extras)
-        if missing or set(extras) - set(self.extras):
-            raise ValueError(f"extras must be exactly {sorted(self.extras)}, got {sorted(extras)}")
-        for k, v in extras.items():
-            self.extras[k][idx] = torch.as_tensor(np.asarray(v, dtype=np.float32)).reshape(n, *self.extras[k].shape[1:])
+        for k, v in extras_t.items():
+            self.extras[k][idx] = v
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.size + n, self.capacity)
         self.total_added += n

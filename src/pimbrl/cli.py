@@ -55,9 +55,9 @@ def _train_config_from_args(args: argparse.Namespace):
     overrides = overrides_from_args(args, TrainConfig)
     if args.steps is not None:
         overrides["total_steps"] = args.steps
-    if args.env_kwargs:
+    if args.env_kwargs_json:
         try:
-            overrides["env_kwargs"] = json.loads(args.env_kwargs)
+            overrides["env_kwargs"] = json.loads(args.env_kwargs_json)
         except json.JSONDecodeError as exc:
             raise ValueError(f'--env-kwargs must be a JSON object, e.g. \'{{"reward": "physical"}}\': {exc}') from None
     return resolve_config(
@@ -302,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("env", help="ks | burgers | cartpole | pendulum, a pimbrl id, or any Gymnasium id (e.g. Pendulum-v1)")
     tr.add_argument("--steps", type=int, default=None, help="real environment steps (alias of --total-steps)")
     tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
-    tr.add_argument("--env-kwargs", default=None, help="JSON object of keyword arguments for gymnasium.make")
+    tr.add_argument("--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config", "dyna"))
     add_arguments(tr, AgentConfig, prefix="agent.")

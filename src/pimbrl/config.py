@@ -19,6 +19,16 @@ __all__ = ["ConfigError", "param", "validate", "to_dict", "from_dict", "add_argu
 T = TypeVar("T")
 
 
+class _Unset:
+    """Default of generated flags: tells "not given" apart from an explicit ``none``."""
+
+    def __repr__(self) -> str:
+        return "<unset>"
+
+
+UNSET = _Unset()
+
+
 class ConfigError(ValueError):
     """A configuration value is invalid; the message names the field, the rule and the value."""
 
@@ -148,7 +158,8 @@ def _strip_optional(tp: Any) -> Any:
 def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", skip: tuple[str, ...] = ()) -> None:
     """Add ``--<prefix><field>`` options (dashes for underscores) for every scalar field of ``cls``.
 
-    Defaults are ``None`` so that only the flags actually given override a preset.
+    Defaults are :data:`UNSET` so that only the flags actually given override a preset; ``none`` given
+    for an optional field sets it to ``None``.
     """
     hints = _field_types(cls)
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
@@ -161,7 +172,7 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", 
             flag,
             dest=f"{prefix}{f.name}",
             type=_parser_for(tp, f"{prefix}{f.name}"),
-            default=None,
+            default=UNSET,
             metavar=_base_type(tp).__name__.upper() if isinstance(_base_type(tp), type) else "VALUE",
             help=f"{f.metadata.get('help', '')} (preset/default: {default!r})",
         )
@@ -171,8 +182,8 @@ def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -
     """The fields of ``cls`` given on the command line, as ``{name: value}``."""
     out = {}
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
-        value = getattr(args, f"{prefix}{f.name}", None)
-        if value is not None:
+        value = getattr(args, f"{prefix}{f.name}", UNSET)
+        if value is not UNSET:
             out[f.name] = value
     return out
 

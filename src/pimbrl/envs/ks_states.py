@@ -103,6 +103,8 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
             traj[k + 1] = u
         rate = np.abs(traj[1:] - traj[:-1]).max(-1) / physics.control_dt  # (T, B)
         for b in range(cfg.batch):
+            if not np.isfinite(traj[:, b]).all():
+                continue  # a run that blew up contributes nothing
             slow = np.nonzero(rate[:, b] < cfg.settle_rate)[0]
             settle = int(slow[0]) if len(slow) else cfg.max_steps
             last_start = min(settle, cfg.max_steps) - cfg.episode_steps - cfg.margin

@@ -49,10 +49,10 @@ def plan_runs(env_id: str, methods: Sequence[str], seeds: Sequence[int], root: P
         if label not in COMPARE_METHODS:
             raise ValueError(f"unknown method {label!r}: choose from {', '.join(COMPARE_METHODS)}")
         method = "mfrl" if label == "mfrl-matched" else label
-        args = ["--method", method, *extra]
-        if label == "mfrl-matched":
-            matched = resolve_config(env_id, {"method": "pimbrl"}).utd
-            args += ["--utd", repr(matched)]
+        args = ["--method", method]
+        if label == "mfrl-matched":  # before the user's arguments, so that a --utd of theirs wins
+            args += ["--utd", repr(resolve_config(env_id, {"method": "pimbrl"}).utd)]
+        args += list(extra)
         for seed in seeds:
             specs.append(RunSpec(label, seed, root / label / f"seed{seed}", (env_id, "--seed", str(seed), *args)))
     return specs

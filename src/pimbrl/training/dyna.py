@@ -5,8 +5,9 @@ phase runs (:meth:`DynaTrainer.model_phase`, then the agent updates of the share
 
 1. **model training** — once D^r holds ``n_sM`` transitions: ``model_steps`` gradient steps of the
    data loss L_D on real transitions (the held-out ones excluded); for PiMBRL, once D^r and D^f together
-   hold ``n_sR`` transitions, each step also carries the physics loss L_E on imagined state-action
-   pairs (they need no label);
+   hold ``n_sR`` transitions, each step also carries the physics loss L_E on unlabelled state-action
+   pairs: real states with actions of the current policy, and imagined pairs once imagination has begun
+   (the physics loss needs no label, so it can help the model *reach* the accuracy threshold);
 2. **accuracy check** — L_D on the most recent held-out real transitions; the model is *in use* while it
    is below lambda (and the run has not switched to model-free fine-tuning);
 3. **imagination** — while in use: ``rollouts`` rollouts of ``l_M`` chained model steps from real start
@@ -75,7 +76,7 @@ class DynaTrainer(Trainer):
         if not isinstance(base, PhysicsEnv):
             raise ValueError(f"{self.cfg.method} needs a pimbrl environment with a known Physics; {self.cfg.env} is not one")
         n, m = base.physics.state_dim, base.physics.action_dim
-        return {"state": (n,), "next_state": (n,), "phys_action": (m,), "k": (1,), "holdout": (1,)}
+        return {"state": (n,), "next_state": (n,), "phys_action": (m,), "k": (1,), "holdout": (1,), "valid": (1,)}
 
     def _reset_env(self, first: bool) -> np.ndarray:
         obs = super()._reset_env(first)
@@ -91,6 +92,7 @@ class DynaTrainer(Trainer):
             "phys_action": base.last_physical_action,
             "k": np.array([base.elapsed_steps - 1]),
             "holdout": np.array([float(self.model_rng.random() < self.cfg.dyna.holdout_fraction)]),
+            "valid": np.array([0.0 if info.get("diverged") else 1.0]),
         }
         self._state = nxt
         return extras
@@ -110,16 +112,14 @@ class DynaTrainer(Trainer):
             if not bool(self.model.fitted):  # normalisation statistics from the first training data
                 self.model_trainer.ensure_normalization(labelled.all())
             unlabelled = None
-            physics_on = (
-                self.cfg.method == "pimbrl" and n_real + len(self.imagined) >= d.start_physics_after and len(self.imagined) > 0
-            )
-            if physics_on:
-                unlabelled = BufferView(self.imagined, torch.arange(len(self.imagined)), labels=False)
+            if self.cfg.method == "pimbrl" and n_real + len(self.imagined) >= d.start_physics_after:
+                unlabelled = UnlabelledPairs(self, train_idx)
             self.model_metrics = self.model_trainer.fit(d.model_steps, d.model_batch_size, self.model_rng, labelled, unlabelled)
             self.phase_s["model_train"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             _, holdout_idx = self._split_indices()
-            self.val_mse = self.model_trainer.validation_mse(BufferView(self.buffer, holdout_idx[-d.validation_size :]).all())
+            recent = holdout_idx[-d.validation_size :]  # _split_indices orders by age, oldest first
+            self.val_mse = self.model_trainer.validation_mse(BufferView(self.buffer, recent).all())
             self.model_in_use = self.val_mse < d.threshold
             self.phase_s["model_check"] += time.perf_counter() - t0
         if self.model_in_use and d.rollouts > 0:
@@ -146,9 +146,17 @@ class DynaTrainer(Trainer):
         states = [self.buffer.extra("state", starts[0])]
         ks = [self.buffer.extra("k", starts[0])]
         if n_img:
-            idx = self.imagined.sample_indices(n_img, self.model_rng)
-            states.append(self.imagined.extra("next_state", idx))
-            ks.append(self.imagined.extra("k", idx) + 1)
+            # continue only imagined rollouts that had not ended (no termination, time left)
+            live = (self.imagined.terminated[: len(self.imagined)] < 0.5) & (self.imagined.truncated[: len(self.imagined)] < 0.5)
+            live_idx = torch.nonzero(live).reshape(-1)
+            if len(live_idx):
+                idx = live_idx[torch.from_numpy(self.model_rng.integers(0, len(live_idx), size=n_img))]
+                states.append(self.imagined.extra("next_state", idx))
+                ks.append(self.imagined.extra("k", idx) + 1)
+            else:
+                starts.append(self.buffer.sample_indices(n_img, self.model_rng))
+                states.append(self.buffer.extra("state", starts[-1]))
+                ks.append(self.buffer.extra("k", starts[-1]))
         u = torch.cat(states).double().numpy()
         k = torch.cat(ks).reshape(-1).long().numpy()
         batch = self.model_env.rollout(u, k, lambda obs: self.agent.act(obs), d.rollout_length)
@@ -157,6 +165,7 @@ class DynaTrainer(Trainer):
                 batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated, batch.truncated,
                 state=batch.state, next_state=batch.next_state, phys_action=batch.phys_action,
                 k=batch.k[:, None].astype(np.float32), holdout=np.zeros((len(batch), 1), np.float32),
+                valid=np.ones((len(batch), 1), np.float32),
             )  # fmt: skip
             self.imagined_total += len(batch)
 
@@ -182,8 +191,14 @@ class DynaTrainer(Trainer):
 
     # ------------------------------------------------------------------ helpers
     def _split_indices(self) -> tuple[torch.Tensor, torch.Tensor]:
-        hold = self.buffer.extras["holdout"][: len(self.buffer), 0] > 0.5
-        return torch.nonzero(~hold).reshape(-1), torch.nonzero(hold).reshape(-1)
+        """Indices of the model's training and held-out real transitions, oldest first; steps that blew up
+        (whose stored next state is the pre-step state) are in neither."""
+        n = len(self.buffer)
+        age = (torch.arange(n) - self.buffer.pos) % self.buffer.capacity if n == self.buffer.capacity else torch.arange(n)
+        order = torch.argsort(age)
+        hold = self.buffer.extras["holdout"][order, 0] > 0.5
+        valid = self.buffer.extras["valid"][order, 0] > 0.5
+        return order[~hold & valid], order[hold & valid]
 
     # ------------------------------------------------------------------ logging and state
     def metric_names(self) -> list[str]:
@@ -238,6 +253,34 @@ class DynaTrainer(Trainer):
         self.model_metrics = dict(state["model_metrics"])
         self.phase_s = dict(state["phase_s"])
         self.imagined_total = int(state["imagined_total"])
+
+
+class UnlabelledPairs:
+    """State-action pairs for the physics loss, which needs no label: real training states with actions of
+    the current policy (exploration noise included) and, once imagination has begun, the imagined buffer's
+    pairs - half and half. The physics loss thus shapes the model from its first phase on, before the
+    model is accurate enough to be used."""
+
+    def __init__(self, trainer: DynaTrainer, train_idx: torch.Tensor) -> None:
+        self.t = trainer
+        self.idx = train_idx
+
+    def __len__(self) -> int:
+        return len(self.idx) + len(self.t.imagined)
+
+    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
+        t = self.t
+        n_img = batch // 2 if len(t.imagined) else 0
+        rows = self.idx[torch.from_numpy(rng.integers(0, len(self.idx), size=batch - n_img))]
+        obs = t.buffer.obs.index_select(0, rows).numpy()
+        phys = t.task.physical_action(t.adapter.to_env(t.agent.act(obs), rng), len(rows))
+        states = [t.buffer.extra("state", rows)]
+        actions = [torch.as_tensor(phys, dtype=torch.float32)]
+        if n_img:
+            img = torch.from_numpy(rng.integers(0, len(t.imagined), size=n_img))
+            states.append(t.imagined.extra("state", img))
+            actions.append(t.imagined.extra("phys_action", img))
+        return TransitionData(torch.cat(states), torch.cat(actions))
 
 
 class BufferView:

@@ -94,9 +94,10 @@ class Trainer:
         run_dir = RunDirectory(path)
         if run_dir.config_path.exists():
             raise FileExistsError(f"{path} already holds a run; use `pimbrl resume {path}` or choose another --run-dir")
+        trainer = cls(cfg, run_dir, progress)  # first: a configuration that cannot run leaves no directory behind
         run_dir.path.mkdir(parents=True, exist_ok=True)
         run_dir.write_config({"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command})
-        return cls(cfg, run_dir, progress)
+        return trainer
 
     @classmethod
     def resume(cls, path: str, progress: bool = True, inspect_only: bool = False) -> Trainer:
@@ -144,8 +145,11 @@ class Trainer:
     def run(self) -> RunSummary:
         """Train until ``total_steps`` real steps, then write the final checkpoint and summary."""
         cfg = self.cfg
-        if self.finished:
-            return self.summary()
+        if self.finished:  # e.g. killed between the final checkpoint and the status update
+            summary = self.summary()
+            if self.run_dir.status != "finished":
+                self.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))
+            return summary
         label = f"{cfg.method}/{cfg.agent} {cfg.env} seed {cfg.seed}"
         self.progress = TrainingProgress(cfg.total_steps, self.t, label, enabled=self.show_progress)
         self._session_start = time.perf_counter()
