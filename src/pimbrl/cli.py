@@ -392,7 +392,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if extra and not getattr(args, "takes_extra", False):
         parser.error(f"`pimbrl {args.command}` takes no arguments after --")
-    if getattr(args, "steps", None) is not None and args.steps < 1:
+    steps = getattr(args, "steps", None)
+    if isinstance(steps, int) and steps < 1:  # config-driven commands default to an UNSET sentinel
         parser.error("--steps must be >= 1")
     try:
         return int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
