@@ -14,10 +14,9 @@ Usage: ``python benchmarks/bench_envs.py`` (prints a table, writes benchmarks/re
 
 from __future__ import annotations
 
-import _common  # noqa: F401  (pins threads first)
-
 import argparse
 
+import _common  # noqa: F401  (pins threads first)
 import gymnasium as gym
 import numpy as np
 

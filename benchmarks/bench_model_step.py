@@ -9,7 +9,6 @@ initial states), i.e. how far the physics loss's target is from the true environ
 from __future__ import annotations
 
 import _common  # noqa: F401  (pins threads first)
-
 import numpy as np
 import torch
 
@@ -44,10 +43,23 @@ def timing(phys, rng: np.random.Generator) -> list[dict]:
         t_data = _common.time_call(lambda: trainer.step(labelled=data.sample(BATCH, rng)), min_time=1.0, repeats=5)
         reps = 2 if scheme == "solver" else 5
         t_phys = _common.time_call(lambda: trainer.step(unlabelled=data.sample(BATCH, rng)), min_time=1.0, repeats=reps)
-        t_both = _common.time_call(lambda: trainer.step(data.sample(BATCH, rng), data.sample(BATCH, rng)), min_time=1.0, repeats=reps)
-        row = {"system": phys.name, "N": n_int, "scheme": scheme, "data_ms": 1e3 * t_data, "physics_ms": 1e3 * t_phys, "mixed_ms": 1e3 * t_both}
+        t_both = _common.time_call(
+            lambda: trainer.step(data.sample(BATCH, rng), data.sample(BATCH, rng)), min_time=1.0, repeats=reps
+        )
+        row = {
+            "system": phys.name,
+            "N": n_int,
+            "scheme": scheme,
+            "data_ms": 1e3 * t_data,
+            "physics_ms": 1e3 * t_phys,
+            "mixed_ms": 1e3 * t_both,
+        }
         rows.append(row)
-        print(f"{phys.name:8s} N={n_int:3d} {scheme:6s}: data-loss step {row['data_ms']:7.1f} ms   physics-loss step {row['physics_ms']:8.1f} ms   both {row['mixed_ms']:8.1f} ms", flush=True)
+        print(
+            f"{phys.name:8s} N={n_int:3d} {scheme:6s}: data-loss step {row['data_ms']:7.1f} ms   "
+            f"physics-loss step {row['physics_ms']:8.1f} ms   both {row['mixed_ms']:8.1f} ms",
+            flush=True,
+        )
     return rows
 
 
@@ -80,7 +92,8 @@ def etd_accuracy(phys, rng: np.random.Generator) -> list[dict]:
         r = rows[-1]
         print(
             f"{phys.name:8s} N={n:4d} h={r['h']:.4f}: defect max {r['defect_max']:.2e} mse {r['defect_mse']:.2e}; "
-            f"N coarse steps vs the solver over a control step: max {r['control_step_error_max']:.2e} mse {r['control_step_mse']:.2e}",
+            f"N coarse steps vs the solver over a control step: "
+            f"max {r['control_step_error_max']:.2e} mse {r['control_step_mse']:.2e}",
             flush=True,
         )
     return rows

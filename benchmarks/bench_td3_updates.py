@@ -10,10 +10,9 @@ Usage: ``pip install stable-baselines3`` then ``python benchmarks/bench_td3_upda
 
 from __future__ import annotations
 
-import _common  # noqa: F401  (pins threads first)
-
 import time
 
+import _common  # noqa: F401  (pins threads first)
 import gymnasium as gym
 import numpy as np
 import torch
@@ -87,7 +86,8 @@ def main() -> None:
     import stable_baselines3
 
     rows = [bench(3, 1), bench(64, 4)]
-    print(f"recorded {_common.record('td3_updates', {'sb3_version': stable_baselines3.__version__, 'torch_threads': torch.get_num_threads(), 'rows': rows})}")
+    payload = {"sb3_version": stable_baselines3.__version__, "torch_threads": torch.get_num_threads(), "rows": rows}
+    print(f"recorded {_common.record('td3_updates', payload)}")
 
 
 if __name__ == "__main__":

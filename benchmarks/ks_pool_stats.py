@@ -9,10 +9,9 @@ Usage: ``python benchmarks/ks_pool_stats.py``
 
 from __future__ import annotations
 
-import _common  # noqa: F401  (pins threads first)
-
 import time
 
+import _common  # noqa: F401  (pins threads first)
 import numpy as np
 
 from pimbrl.envs import KSPoolConfig, ks_initial_state_pool

@@ -15,14 +15,14 @@ Extra arguments after ``--`` go to `pimbrl train` unchanged.
 
 from __future__ import annotations
 
-import _common  # noqa: F401  (pins threads first)
-
 import argparse
 import json
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import _common  # noqa: F401  (pins threads first)
 
 from pimbrl.training import RunDirectory, steps_to_threshold
 
@@ -48,7 +48,21 @@ def main() -> None:
         if cfg_path.exists():
             cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(run), "--quiet"]
         else:
-            cmd = [sys.executable, "-m", "pimbrl.cli", "train", args.env, "--seed", str(seed), "--run-dir", str(run), "--threads", "1", "--quiet", *extra]
+            cmd = [
+                sys.executable,
+                "-m",
+                "pimbrl.cli",
+                "train",
+                args.env,
+                "--seed",
+                str(seed),
+                "--run-dir",
+                str(run),
+                "--threads",
+                "1",
+                "--quiet",
+                *extra,
+            ]
         pending.append(cmd)
     running: list[subprocess.Popen] = []
     while pending or running:

@@ -302,7 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("env", help="ks | burgers | cartpole | pendulum, a pimbrl id, or any Gymnasium id (e.g. Pendulum-v1)")
     tr.add_argument("--steps", type=int, default=None, help="real environment steps (alias of --total-steps)")
     tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
-    tr.add_argument("--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make")
+    tr.add_argument(
+        "--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make"
+    )
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config", "dyna"))
     add_arguments(tr, AgentConfig, prefix="agent.")
