@@ -184,3 +184,19 @@ def test_model_based_methods_need_a_physics_env(tmp_path, capsys) -> None:
 
 def test_small_pool_is_used(ks_small_pools) -> None:
     assert len(ks_small_pools[0].states) == SMALL_POOL.n_train
+
+
+def test_step_ratio_counts_unfinished_runs_at_their_budget() -> None:
+    from pimbrl.experiments.compare import step_ratio, summarize_method
+
+    def run(steps_to: int | None, steps: int) -> dict:
+        return {"steps_to_threshold": steps_to, "steps": steps, "final_return": 0.0, "wall_s": 1.0, "update_to_data": 1.0}
+
+    pim = summarize_method([run(1000, 5000), run(2000, 5000)])
+    assert pim["steps_to_threshold_mean"] == 1500.0
+    mfrl = summarize_method([run(3000, 15000), run(None, 15000), run(None, 12000)])
+    assert mfrl["steps_to_threshold_mean"] is None and mfrl["reached"] == 1
+    assert mfrl["steps_to_threshold_lower_bound"] == 10000.0  # (3000 + 15000 + 12000) / 3
+    ratio = step_ratio(pim, mfrl)
+    assert ratio["value"] == pytest.approx(0.15) and ratio["note"].startswith("upper bound: 2 of 3")
+    assert step_ratio(pim, pim)["value"] == 1.0 and step_ratio(mfrl, pim)["value"] is None
