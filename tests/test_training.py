@@ -249,3 +249,12 @@ def test_a_run_that_cannot_start_leaves_no_directory(tmp_path, capsys) -> None:
     assert "needs a pimbrl environment" in capsys.readouterr().err
     assert not (run / "config.json").exists()
     assert main(["train", "Pendulum-v1", "--run-dir", str(run), *SMOKE["Pendulum-v1"], *TINY]) == 0
+
+
+def test_print_config_shows_the_resolved_preset_and_trains_nothing(tmp_path, capsys) -> None:
+    run = tmp_path / "never"
+    assert main(["train", "ks", "--method", "pimbrl", "--utd", "3", "--print-config", "--run-dir", str(run)]) == 0
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["env"] == "pimbrl/KuramotoSivashinsky-v0" and cfg["utd"] == 3.0
+    assert cfg["agent_config"]["gamma"] == 0.977 and cfg["dyna"]["rollout_length"] == 3
+    assert not run.exists()

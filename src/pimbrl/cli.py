@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, add_arguments, overrides_from_args
+from .config import ConfigError, add_arguments, overrides_from_args, to_dict
 
 __all__ = ["main", "build_parser"]
 
@@ -91,6 +91,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .training import create_trainer
 
     cfg = _train_config_from_args(args)
+    if args.print_config:  # the resolved configuration (defaults, preset, overrides); nothing is trained
+        print(json.dumps(to_dict(cfg), indent=2))
+        return 0
     run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method, cfg.agent, cfg.seed)
     trainer = create_trainer(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"run directory: {run_dir}", file=sys.stderr)
@@ -306,6 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make"
     )
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
+    tr.add_argument("--print-config", action="store_true", help="print the resolved configuration as JSON and exit")
     add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config", "dyna"))
     add_arguments(tr, AgentConfig, prefix="agent.")
     add_arguments(tr, DynaConfig, prefix="dyna.")
