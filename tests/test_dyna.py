@@ -175,6 +175,10 @@ def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
     mtime = (root / "pimbrl" / "seed1" / "evaluations.csv").stat().st_mtime
     assert main(args + extra) == 0  # nothing to redo
     assert (root / "pimbrl" / "seed1" / "evaluations.csv").stat().st_mtime == mtime
+    # --no-run summarises what exists and starts nothing: seed 2 is planned but not trained
+    assert main([*args[:5], "0,1,2", *args[6:], "--no-run"]) == 0
+    assert not (root / "mfrl" / "seed2").exists()
+    assert len(json.loads((root / "summary.json").read_text())["runs"]) == 6
 
 
 def test_model_based_methods_need_a_physics_env(tmp_path, capsys) -> None:

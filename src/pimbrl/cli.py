@@ -216,7 +216,16 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         train_extra += ["--steps", str(args.steps)]
     if args.threshold is not None:
         train_extra += ["--threshold", repr(args.threshold)]
-    result = compare(env_id, methods, _seed_list(args.seeds), args.run_dir, train_extra, jobs=args.jobs, threshold=args.threshold)
+    result = compare(
+        env_id,
+        methods,
+        _seed_list(args.seeds),
+        args.run_dir,
+        train_extra,
+        jobs=args.jobs,
+        threshold=args.threshold,
+        run=not args.no_run,
+    )
     thr = result["threshold"]
     print(f"{env_id}: threshold {thr}")
     for label, m in result["methods"].items():
@@ -357,6 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--jobs", type=int, default=1, help="runs in parallel (each one thread)")
     cp.add_argument("--steps", type=int, default=None, help="real steps of every run")
     cp.add_argument("--threshold", type=float, default=None, help="return that counts as solved (default: the preset's)")
+    cp.add_argument("--no-run", action="store_true", help="start nothing: summarise the runs as they are (finished or not)")
     cp.set_defaults(func=_cmd_compare, takes_extra=True)
 
     sw = sub.add_parser(

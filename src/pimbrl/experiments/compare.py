@@ -177,12 +177,14 @@ def compare(
     jobs: int = 1,
     threshold: float | None = None,
     log: Callable[[str], None] = print,
+    run: bool = True,
 ) -> dict[str, Any]:
-    """Run (what is missing of) a comparison and write its figure and tables."""
+    """Run (what is missing of) a comparison and write its figure and tables; with ``run=False`` start
+    nothing and summarise the runs as they stand (unfinished ones up to their last evaluation)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     specs = plan_runs(env_id, methods, seeds, root, extra)
-    failed = run_all(specs, jobs=jobs, log=log)
+    failed = run_all(specs, jobs=jobs, log=log) if run else []
     if threshold is None:
         threshold = resolve_config(env_id, {"method": "mfrl"}).threshold
     result = summarize_runs(specs, threshold)
