@@ -39,9 +39,11 @@ def compare_table(summary: dict) -> str:
             f"| {label} | {m['reached']}/{m['seeds']} | {_fmt_steps(m['steps_to_threshold'])} | {mean} | "
             f"{m['final_return_mean']:.2f} | {m['update_to_data']:.2f} | {m['wall_s_mean']:.0f} s |"
         )
+    if summary["ratios"]:
+        rows.append("")
     for name, r in summary["ratios"].items():
         value = "—" if r["value"] is None else f"{r['value']:.3f}"
-        rows.append(f"\n{name}: {value} ({r['note']})")
+        rows.append(f"{name}: {value} ({r['note']})  ")
     return "\n".join(rows)
 
 
