@@ -16,15 +16,13 @@ Extra arguments after ``--`` go to `pimbrl train` unchanged.
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import _common  # noqa: F401  (pins threads first)
 
-from pimbrl.training import RunDirectory, steps_to_threshold
+from pimbrl.experiments.compare import RunSpec, run_all
+from pimbrl.training import RunDirectory
 
 
 def main() -> None:
@@ -39,64 +37,29 @@ def main() -> None:
     args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
     out = Path(args.out_dir)
     seeds = [int(s) for s in args.seeds.split(",")]
-    pending = []
-    for seed in seeds:
-        run = out / f"seed{seed}"
-        cfg_path = run / "config.json"
-        if cfg_path.exists() and json.loads(cfg_path.read_text()).get("status") == "finished":
-            continue
-        if cfg_path.exists():
-            cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(run), "--quiet"]
-        else:
-            cmd = [
-                sys.executable,
-                "-m",
-                "pimbrl.cli",
-                "train",
-                args.env,
-                "--seed",
-                str(seed),
-                "--run-dir",
-                str(run),
-                "--threads",
-                "1",
-                "--quiet",
-                *extra,
-            ]
-        pending.append(cmd)
-    running: list[subprocess.Popen] = []
-    while pending or running:
-        while pending and len(running) < args.jobs:
-            cmd = pending.pop(0)
-            print("$", " ".join(cmd), flush=True)
-            running.append(subprocess.Popen(cmd))
-        time.sleep(1.0)
-        for p in list(running):
-            if p.poll() is not None:
-                running.remove(p)
-                if p.returncode != 0:
-                    print(f"run failed with exit code {p.returncode}: {' '.join(p.args)}", file=sys.stderr)
+    specs = [
+        RunSpec("mfrl", seed, out / f"seed{seed}", (args.env, "--seed", str(seed), "--threads", "1", *extra)) for seed in seeds
+    ]
+    run_all(specs, jobs=args.jobs)  # finished runs are skipped, interrupted ones resumed
     rows = []
-    for seed in seeds:
-        run = RunDirectory(out / f"seed{seed}")
-        payload = run.read_config()
-        evals = run.evaluations.read()
-        threshold = payload["config"].get("threshold")
-        summary = payload.get("summary", {})
+    for spec in specs:
+        run = RunDirectory(spec.path)
+        threshold = run.read_config()["config"].get("threshold")
+        res = run.result()
         rows.append(
             {
-                "seed": seed,
-                "steps_to_threshold": steps_to_threshold(evals, threshold),
-                "final_return_mean": float(evals[-1]["return_mean"]),
-                "best_return_mean": max(float(r["return_mean"]) for r in evals),
-                "wall_s": summary.get("wall_s"),
-                "updates": summary.get("updates"),
+                "seed": spec.seed,
+                "steps_to_threshold": res["steps_to_threshold"],
+                "final_return_mean": res["final_return"],
+                "best_return_mean": res["best_return"],
+                "wall_s": res["wall_s"],
+                "updates": res["updates"],
                 "threshold": threshold,
             }
         )
         r = rows[-1]
         print(
-            f"seed {seed}: steps to {threshold} = {r['steps_to_threshold']}, final {r['final_return_mean']:.2f}, "
+            f"seed {spec.seed}: steps to {threshold} = {r['steps_to_threshold']}, final {r['final_return_mean']:.2f}, "
             f"best {r['best_return_mean']:.2f}, wall {r['wall_s']:.0f} s"
         )
     reached = [r["steps_to_threshold"] for r in rows if r["steps_to_threshold"] is not None]
