@@ -1,9 +1,10 @@
 """Collect the summaries of `pimbrl compare` and `pimbrl model-eval` directories into benchmarks/results/
 and print them as Markdown tables (the tables of docs/results.md come from this script).
 
-Usage: ``python benchmarks/collect_results.py [ROOT]`` with ROOT the directory that holds
-``<env>/summary.json`` (compare) and ``model-eval/<env>/summary.json`` (default benchmarks/runs/final).
-Copies each summary to ``benchmarks/results/compare_<env>.json`` / ``model_eval_<env>.json``.
+Usage: ``python benchmarks/collect_results.py [ROOT ...]`` with each ROOT a compare or sweep directory or one that holds
+``<name>/summary.json`` (of a compare or a sweep) and ``model-eval/<env>/summary.json`` (default
+benchmarks/runs/final). Copies each summary to ``benchmarks/results/compare_<name>.json``,
+``sweep_<name>.json`` or ``model_eval_<env>.json``.
 """
 
 from __future__ import annotations
@@ -47,6 +48,22 @@ def compare_table(summary: dict) -> str:
     return "\n".join(rows)
 
 
+def sweep_table(summary: dict) -> str:
+    rows = [
+        f"sweep {summary['name']}, threshold {summary['threshold']}",
+        "",
+        "| env | method | setting | seed | steps | steps to threshold | final return | best return |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in summary["rows"]:
+        to = "—" if r["steps_to_threshold"] is None else f"{r['steps_to_threshold']:,}"
+        rows.append(
+            f"| {r['env']} | {r['method']} | {r['setting']} | {r['seed']} | {r['steps']:,} | {to} | "
+            f"{r['final_return']:.2f} | {r['best_return']:.2f} |"
+        )
+    return "\n".join(rows)
+
+
 def model_eval_table(summaries: dict[str, dict]) -> str:
     rows = [
         "| env | training transitions | split | data-only mean | physics-informed mean | data-only median | "
@@ -63,20 +80,28 @@ def model_eval_table(summaries: dict[str, dict]) -> str:
     return "\n".join(rows)
 
 
-def main(root: Path) -> None:
+def main(roots: list[Path]) -> None:
     RESULTS.mkdir(exist_ok=True)
-    for path in sorted(root.glob("*/summary.json")):
-        summary = json.loads(path.read_text())
-        env = path.parent.name
-        shutil.copyfile(path, RESULTS / f"compare_{env}.json")
-        print(f"## {env} ({summary['env']})\n\n{compare_table(summary)}\n")
     evals = {}
-    for path in sorted(root.glob("model-eval/*/summary.json")):
-        evals[path.parent.name] = json.loads(path.read_text())
-        shutil.copyfile(path, RESULTS / f"model_eval_{path.parent.name}.json")
+    for root in roots:
+        if not root.is_dir():
+            raise SystemExit(f"{root} is not a directory; pass the folder that holds the compare/sweep directories")
+        own = [root / "summary.json"] if (root / "summary.json").exists() else []  # ROOT is itself one
+        for path in own + sorted(root.glob("*/summary.json")):
+            summary = json.loads(path.read_text())
+            name = path.parent.name
+            if "rows" in summary:  # a `pimbrl sweep` directory
+                shutil.copyfile(path, RESULTS / f"sweep_{name}.json")
+                print(f"## {name}\n\n{sweep_table(summary)}\n")
+            else:  # a `pimbrl compare` directory
+                shutil.copyfile(path, RESULTS / f"compare_{name}.json")
+                print(f"## {name} ({summary['env']})\n\n{compare_table(summary)}\n")
+        for path in sorted(root.glob("model-eval/*/summary.json")):
+            evals[path.parent.name] = json.loads(path.read_text())
+            shutil.copyfile(path, RESULTS / f"model_eval_{path.parent.name}.json")
     if evals:
         print(f"## model errors (next-state MSE)\n\n{model_eval_table(evals)}")
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parent / "runs" / "final")
+    main([Path(a) for a in sys.argv[1:]] or [Path(__file__).resolve().parent / "runs" / "final"])
