@@ -179,6 +179,10 @@ def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
     assert main([*args[:5], "0,1,2", *args[6:], "--no-run"]) == 0
     assert not (root / "mfrl" / "seed2").exists()
     assert len(json.loads((root / "summary.json").read_text())["runs"]) == 6
+    # --no-run on a directory without runs is an error that says where it looked, and creates nothing
+    empty = tmp_path / "nothing-here"
+    assert main(["compare", "cartpole", "--methods", "mfrl", "--seeds", "1", "--run-dir", str(empty), "--no-run"]) == 2
+    assert "no run under" in capsys.readouterr().err and not empty.exists()
 
 
 def test_model_based_methods_need_a_physics_env(tmp_path, capsys) -> None:

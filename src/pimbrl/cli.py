@@ -241,6 +241,14 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
     if result["failed"]:
         print(f"failed runs: {', '.join(result['failed'])}", file=sys.stderr)
         return 1
+    if not result["runs"]:
+        print(
+            f"error: no run under {args.run_dir} has an evaluation yet (looked for {args.run_dir}/<method>/seed<k> "
+            f"for methods {args.methods} and seeds {args.seeds}); check --run-dir, --methods and --seeds, or drop "
+            "--no-run to start the runs",
+            file=sys.stderr,
+        )
+        return 2
     print(f"wrote {Path(args.run_dir) / 'curves.png'}, summary.csv and summary.json")
     return 0
 

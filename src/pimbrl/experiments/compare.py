@@ -182,7 +182,8 @@ def compare(
     """Run (what is missing of) a comparison and write its figure and tables; with ``run=False`` start
     nothing and summarise the runs as they stand (unfinished ones up to their last evaluation)."""
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
+    if run:
+        root.mkdir(parents=True, exist_ok=True)
     specs = plan_runs(env_id, methods, seeds, root, extra)
     failed = run_all(specs, jobs=jobs, log=log) if run else []
     if threshold is None:
