@@ -40,12 +40,15 @@ def main() -> None:
     specs = [
         RunSpec("mfrl", seed, out / f"seed{seed}", (args.env, "--seed", str(seed), "--threads", "1", *extra)) for seed in seeds
     ]
-    run_all(specs, jobs=args.jobs)  # finished runs are skipped, interrupted ones resumed
+    failed = run_all(specs, jobs=args.jobs)  # finished runs are skipped, interrupted ones resumed
     rows = []
     for spec in specs:
         run = RunDirectory(spec.path)
-        threshold = run.read_config()["config"].get("threshold")
         res = run.result()
+        if res is None:  # failed before its first evaluation: report it, keep the others
+            print(f"seed {spec.seed}: no evaluations in {spec.path}; left out", file=sys.stderr)
+            continue
+        threshold = run.read_config()["config"].get("threshold")
         rows.append(
             {
                 "seed": spec.seed,
@@ -65,6 +68,8 @@ def main() -> None:
     reached = [r["steps_to_threshold"] for r in rows if r["steps_to_threshold"] is not None]
     print(f"reached the threshold: {len(reached)}/{len(rows)} seeds; steps {reached}")
     _common.record(args.name or out.name, {"env": args.env, "train_args": extra, "runs": rows})
+    if failed:
+        sys.exit(f"{len(failed)} run(s) failed: {', '.join(str(s.path) for s in failed)}")
 
 
 if __name__ == "__main__":
