@@ -5,7 +5,7 @@ from .dyna import DynaTrainer
 from .evaluation import EvalResult, Evaluator
 from .loop import RunSummary, Trainer, steps_to_threshold
 from .rundir import RunDirectory
-from .runs import create_trainer, resume_trainer, trainer_class
+from .runs import create_trainer, resume_trainer, resume_training, run_training, trainer_class
 
 __all__ = [
     "METHODS",
@@ -13,6 +13,8 @@ __all__ = [
     "DynaTrainer",
     "create_trainer",
     "resume_trainer",
+    "resume_training",
+    "run_training",
     "trainer_class",
     "PRESETS",
     "EvalResult",
