@@ -128,7 +128,7 @@ def test_model_env_makes_one_batched_call_per_step_and_uses_the_physics_reward()
     assert env.model_calls == 4 and len(out) == 4 * 32
     np.testing.assert_array_equal(out.k, np.repeat(np.arange(4), 32))
     # rewards are the physics' reward of the predicted states
-    expected = task.physics.reward(out.state, out.phys_action, out.next_state, out.k)
+    expected = task.physics.reward(out.state, out.physical_action, out.next_state, out.k)
     np.testing.assert_allclose(out.reward, expected, rtol=1e-12)
     np.testing.assert_allclose(out.next_obs, task.observe(out.next_state, out.k + 1), rtol=1e-6)
     assert np.isfinite(out.obs).all() and np.isfinite(out.next_obs).all()

@@ -122,10 +122,11 @@ RESUME_ARGS = [
 
 
 def _table(path: Path, name: str, drop: tuple[str, ...] = ("wall_s", "steps_per_s")) -> list[dict[str, str]]:
+    """Rows of a CSV log without the columns that measure time (``drop`` and every ``time/...`` column)."""
     import csv
 
     with open(path / name) as fh:
-        return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(fh)]
+        return [{k: v for k, v in row.items() if k not in drop and not k.startswith("time/")} for row in csv.DictReader(fh)]
 
 
 def kill_when(args: list[str], run: Path, ready) -> None:

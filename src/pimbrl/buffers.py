@@ -1,4 +1,13 @@
-"""Preallocated replay storage returning typed batches.
+"""Preallocated replay storage: transitions go in as :class:`Transitions`, come out as :class:`Batch`.
+
+The vocabulary of transition containers is small on purpose:
+
+* :class:`Transitions` (NumPy, leading dimension B): what the real-environment collector and the imagined
+  environment produce and a replay buffer stores, with the physical side (state, next state, physical
+  action, step index) where a model needs it;
+* :class:`Batch` (torch): an agent's training minibatch;
+* :class:`pimbrl.models.TransitionData` (torch): a model's training data (state, physical action, next
+  state), gathered from a buffer's physical fields.
 
 Transitions are stored as torch tensors (float32) in preallocated ring buffers; sampling draws indices
 from a caller-supplied ``numpy.random.Generator`` and gathers with one ``index_select`` per field.
@@ -14,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["Batch", "ReplayBuffer"]
+__all__ = ["PHYSICS_FIELDS", "Batch", "ReplayBuffer", "Transitions", "physics_extras"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +44,75 @@ class Batch:
     def concat(parts: list[Batch]) -> Batch:
         """Concatenate batches along the batch dimension."""
         return Batch(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Batch)))
+
+
+#: Physical fields of a :class:`Transitions` (``None`` for model-free collection).
+PHYSICS_FIELDS = ("state", "next_state", "physical_action", "k")
+
+
+@dataclass(frozen=True)
+class Transitions:
+    """Transitions to store (NumPy arrays, leading dimension B).
+
+    ``action`` is the agent's normalised action; ``physical_action`` the clipped physical input the
+    system received; ``k`` the step index of ``state`` within its episode. ``state``, ``next_state``,
+    ``physical_action`` and ``k`` are ``None`` where no model needs them.
+    """
+
+    obs: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    next_obs: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    state: np.ndarray | None = None
+    next_state: np.ndarray | None = None
+    physical_action: np.ndarray | None = None
+    k: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.reward)
+
+    def select(self, mask: np.ndarray) -> Transitions:
+        """The rows where ``mask`` is true (or at the given indices)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = None if v is None else v[mask]
+        return Transitions(**out)
+
+    @staticmethod
+    def concat(parts: list[Transitions]) -> Transitions:
+        """Concatenate along the batch dimension (the physical fields must be given in all parts or none)."""
+        out: dict[str, Any] = {}
+        for f in fields(Transitions):
+            values = [getattr(p, f.name) for p in parts]
+            out[f.name] = None if values[0] is None else np.concatenate(values)
+        return Transitions(**out)
+
+    def physics(self) -> dict[str, np.ndarray]:
+        """The physical fields as buffer extras (``k`` as a column)."""
+        if self.state is None or self.next_state is None or self.physical_action is None or self.k is None:
+            raise ValueError("these transitions carry no physical fields (collected without a model)")
+        return {
+            "state": self.state,
+            "next_state": self.next_state,
+            "physical_action": self.physical_action,
+            "k": np.asarray(self.k, dtype=np.float32).reshape(-1, 1),
+        }
+
+
+def physics_extras(state_dim: int, action_dim: int) -> dict[str, tuple[int, ...]]:
+    """Buffer extras of a model-based run: the physical fields, plus per-transition flags ``holdout``
+    (kept out of model training to measure its accuracy) and ``valid`` (0 where the step blew up)."""
+    return {
+        "state": (state_dim,),
+        "next_state": (state_dim,),
+        "physical_action": (action_dim,),
+        "k": (1,),
+        "holdout": (1,),
+        "valid": (1,),
+    }
 
 
 class ReplayBuffer:
@@ -113,6 +191,12 @@ class ReplayBuffer:
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.size + n, self.capacity)
         self.total_added += n
+
+    def add_transitions(self, tr: Transitions, **flags: np.ndarray) -> None:
+        """Store :class:`Transitions`; a buffer with physical extras stores their physical fields too, and
+        ``flags`` (e.g. ``holdout``, ``valid``) fill the remaining extras."""
+        extras = {**(tr.physics() if self.extras else {}), **flags}
+        self.add(tr.obs, tr.action, tr.reward, tr.next_obs, tr.terminated, tr.truncated, **extras)
 
     def sample_indices(self, batch_size: int, rng: np.random.Generator) -> torch.Tensor:
         if self.size == 0:

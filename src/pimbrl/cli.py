@@ -88,16 +88,16 @@ def build_train_config(argv: list[str]):
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .training import create_trainer
+    from .training import create_run, train
 
     cfg = _train_config_from_args(args)
     if args.print_config:  # the resolved configuration (defaults, preset, overrides); nothing is trained
         print(json.dumps(to_dict(cfg), indent=2))
         return 0
     run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method, cfg.agent, cfg.seed)
-    trainer = create_trainer(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
+    run = create_run(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"run directory: {run_dir}", file=sys.stderr)
-    summary = trainer.run()
+    summary = train(run)
     _print_summary(run_dir, summary)
     return 0
 
@@ -112,42 +112,41 @@ def _print_summary(run_dir: str, summary) -> None:
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
-    from .training import resume_trainer
+    from .training import open_run, train
 
-    trainer = resume_trainer(args.run_dir, progress=not args.quiet)
-    if trainer.finished:
-        print(f"{args.run_dir} has already finished ({trainer.t:,d} steps); nothing to do")
+    run = open_run(args.run_dir, progress=not args.quiet)
+    if run.finished:
+        train(run)  # repairs a "running" status left by a kill after the final checkpoint
+        print(f"{args.run_dir} has already finished ({run.t:,d} steps); nothing to do")
         return 0
-    print(f"resuming {args.run_dir} at step {trainer.t:,d}", file=sys.stderr)
-    _print_summary(args.run_dir, trainer.run())
+    print(f"resuming {args.run_dir} at step {run.t:,d}", file=sys.stderr)
+    _print_summary(args.run_dir, train(run))
     return 0
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .training import Evaluator, resume_trainer, steps_to_threshold
+    from .training import Evaluator, load_run, steps_to_threshold
 
-    trainer = resume_trainer(args.run_dir, progress=False, inspect_only=True)
-    if not trainer.run_dir.checkpoint_path.exists():
+    run = load_run(args.run_dir)
+    if not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
-    cfg = trainer.cfg
+    cfg = run.cfg
     episodes = args.episodes or cfg.eval_episodes
-    evaluator = (
-        trainer.evaluator if episodes == cfg.eval_episodes else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
-    )
-    result = evaluator.run(lambda o: trainer.agent.act(o, deterministic=True))
+    evaluator = run.evaluator if episodes == cfg.eval_episodes else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
+    result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     s = result.summary()
     print(
-        f"{args.run_dir} (step {trainer.t:,d}, {episodes} test episodes): return mean {s['return_mean']:.3f}, "
+        f"{args.run_dir} (step {run.t:,d}, {episodes} test episodes): return mean {s['return_mean']:.3f}, "
         f"min {s['return_min']:.3f}, max {s['return_max']:.3f}, std {s['return_std']:.3f}"
     )
-    rows = trainer.run_dir.evaluations.read()
+    rows = run.run_dir.evaluations.read()
     if cfg.threshold is not None:
         reached = steps_to_threshold(rows, cfg.threshold)
         print(f"steps to threshold {cfg.threshold:g}: {'not reached' if reached is None else f'{reached:,d}'}")
     if args.json:
-        print(json.dumps({"step": trainer.t, **s, "config": dataclasses.asdict(cfg)}, default=str))
+        print(json.dumps({"step": run.t, **s, "config": dataclasses.asdict(cfg)}, default=str))
     return 0
 
 

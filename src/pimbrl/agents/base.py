@@ -81,8 +81,9 @@ class Agent(ABC):
     """An off-policy actor-critic agent acting in normalised actions ``[-1, 1]^act_dim``.
 
     Randomness is owned by the agent and seeded at construction: network initialisation (a forked torch
-    RNG, so the global one is untouched), exploration noise (a ``numpy.random.Generator``) and update noise
-    (a ``torch.Generator``). All of it is part of :meth:`state_dict`.
+    RNG, so the global one is untouched), exploration noise of real actions (a ``numpy.random.Generator``)
+    and update noise (a ``torch.Generator``), three independent streams. All of it is part of
+    :meth:`state_dict`.
     """
 
     name: str = "agent"
@@ -103,8 +104,12 @@ class Agent(ABC):
         """Create networks and optimisers (called under a seeded torch RNG)."""
 
     @abstractmethod
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        """Normalised actions ``(B, act_dim)`` for observations ``(B, obs_dim)``; exploration unless deterministic."""
+    def act(self, obs: np.ndarray, deterministic: bool = False, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Normalised actions ``(B, act_dim)`` for observations ``(B, obs_dim)``; exploration unless deterministic.
+
+        The exploration noise comes from ``rng`` when given (e.g. imagination draws on its own stream, so
+        that it never shifts the noise of real actions), else from the agent's own exploration stream.
+        """
 
     @abstractmethod
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:

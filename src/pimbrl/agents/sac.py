@@ -50,9 +50,15 @@ class SAC(Agent):
         return self.actor(obs, deterministic=True)[0]
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    def act(self, obs: np.ndarray, deterministic: bool = False, rng: np.random.Generator | None = None) -> np.ndarray:
+        """A sample of the squashed Gaussian policy (its mean if deterministic); the sample's noise is seeded
+        from ``rng`` if given, else from the agent's exploration stream (never from the update noise)."""
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
-        a, _ = self.actor(obs_t, deterministic=deterministic, generator=self.generator)
+        generator = None
+        if not deterministic:
+            source = self.rng if rng is None else rng
+            generator = torch.Generator().manual_seed(int(source.integers(0, 2**62)))
+        a, _ = self.actor(obs_t, deterministic=deterministic, generator=generator)
         return a.numpy().astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:

@@ -58,11 +58,13 @@ class TD3(Agent):
         return self.actor(obs)
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    def act(self, obs: np.ndarray, deterministic: bool = False, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Actor output plus Gaussian exploration noise (from ``rng`` if given), clipped to ``[-1, 1]``."""
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
         a = self.actor(obs_t).numpy()
         if not deterministic and self.config.exploration_noise > 0:
-            a = np.clip(a + self.config.exploration_noise * self.rng.standard_normal(a.shape), -1.0, 1.0)
+            noise = (self.rng if rng is None else rng).standard_normal(a.shape)
+            a = np.clip(a + self.config.exploration_noise * noise, -1.0, 1.0)
         return a.astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:

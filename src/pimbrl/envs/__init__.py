@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from .base import PhysicsEnv, PhysicsVectorEnv
+from .base import PHYSICS_INFO_KEYS, PhysicsEnv, PhysicsVectorEnv
 from .burgers import BurgersEnv, BurgersTask, BurgersVectorEnv
 from .cartpole import CartPoleEnv, CartPoleTask, CartPoleVectorEnv
 from .ks import KSTask, KuramotoSivashinskyEnv, KuramotoSivashinskyVectorEnv
 from .ks_states import KSPool, KSPoolConfig, ks_initial_state_pool
 from .pendulum import PendulumEnv, PendulumTask, PendulumVectorEnv
-from .task import Task
+from .task import StepOutcome, Task
 
 __all__ = [
     "ENV_IDS",
+    "PHYSICS_INFO_KEYS",
     "BurgersEnv",
     "BurgersTask",
     "BurgersVectorEnv",
@@ -30,6 +31,7 @@ __all__ = [
     "PendulumVectorEnv",
     "PhysicsEnv",
     "PhysicsVectorEnv",
+    "StepOutcome",
     "Task",
     "ks_initial_state_pool",
     "register_envs",

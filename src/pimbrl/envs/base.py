@@ -10,6 +10,12 @@ Common behaviour (SPEC section 1, "Common to all"):
 * a state that blows up ends the episode with ``terminated=True``, the task's finite
   ``divergence_penalty`` as reward and ``info["diverged"] = True``; the observation returned is the
   last finite one, so no NaN ever reaches a replay buffer;
+* every ``info`` carries the physical side of the step, the documented interface of the model-based
+  methods (:data:`PHYSICS_INFO_KEYS`): ``info["state"]``, the physical state after the step (a float64
+  copy, the last finite one where the step blew up); ``info["physical_action"]``, the clipped physical
+  action that was applied (e.g. the force of Cart-Pole's discrete action); ``info["step_index"]``, the
+  number of control steps since the reset (0 after ``reset``). ``reset`` returns ``state`` and
+  ``step_index`` too. (The vector env exposes its states as the ``states`` property instead.);
 * the time limit truncates (``truncated=True``, never ``terminated``): for the single env through
   Gymnasium's ``TimeLimit`` wrapper that ``gymnasium.make`` adds, for the vector env internally.
 """
@@ -25,14 +31,17 @@ from gymnasium.vector.utils import batch_space
 
 from .task import Task
 
-__all__ = ["PhysicsEnv", "PhysicsVectorEnv"]
+__all__ = ["PHYSICS_INFO_KEYS", "PhysicsEnv", "PhysicsVectorEnv"]
+
+#: Keys of the physical side of a step in ``info`` (see the module docstring).
+PHYSICS_INFO_KEYS = ("state", "physical_action", "step_index")
 
 
 class PhysicsEnv(gym.Env):
     """Single-environment shell; subclasses set :attr:`task_class` and document the task."""
 
     task_class: ClassVar[type[Task]]
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 - Gymnasium declares it as an attribute
 
     def __init__(self, render_mode: str | None = None, **task_kwargs: Any) -> None:
         if render_mode is not None:
@@ -46,8 +55,6 @@ class PhysicsEnv(gym.Env):
         self.render_mode = None
         self._u: np.ndarray | None = None  # (1, state_dim) float64
         self._k = np.zeros(1, dtype=np.int64)
-        #: the clipped physical action of the last step (e.g. the force for Cart-Pole's discrete action)
-        self.last_physical_action = np.zeros(self.physics.action_dim)
 
     @property
     def state(self) -> np.ndarray:
@@ -69,18 +76,23 @@ class PhysicsEnv(gym.Env):
         else:
             self._u = self.task.sample_initial_states(self.np_random, 1)
         self._k = np.zeros(1, dtype=np.int64)
-        return self.task.observe(self._u, self._k)[0], {"diverged": False}
+        return self.task.observe(self._u, self._k)[0], {"diverged": False, "state": self._u[0].copy(), "step_index": 0}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._u is None:
             raise RuntimeError("call reset() before step()")
         a = self.task.physical_action(action, 1)
-        self.last_physical_action = a[0]
-        out = self.task.advance(self._u, self._k, a)
+        out = self.task.advance(self._u, a, self._k)
         self._u = out.state
         self._k = self._k + 1
         obs = self.task.observe(self._u, self._k)[0]
-        return obs, float(out.reward[0]), bool(out.terminated[0]), False, {"diverged": bool(out.diverged[0])}
+        info = {
+            "diverged": bool(out.diverged[0]),
+            "state": self._u[0].copy(),
+            "physical_action": a[0].copy(),
+            "step_index": int(self._k[0]),
+        }
+        return obs, float(out.reward[0]), bool(out.terminated[0]), False, info
 
 
 class PhysicsVectorEnv(VectorEnv):
@@ -96,7 +108,7 @@ class PhysicsVectorEnv(VectorEnv):
     """
 
     task_class: ClassVar[type[Task]]
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": [], "autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata: dict[str, Any] = {"render_modes": [], "autoreset_mode": AutoresetMode.NEXT_STEP}  # noqa: RUF012
 
     def __init__(
         self,
@@ -166,7 +178,7 @@ class PhysicsVectorEnv(VectorEnv):
         if not self._has_reset:
             raise RuntimeError("call reset() before step()")
         a = self.task.physical_action(actions, self.num_envs)
-        out = self.task.advance(self._u, self._k, a)
+        out = self.task.advance(self._u, a, self._k)
         resetting = self._needs_reset if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(self.num_envs, dtype=bool)
         stepped = ~resetting
         self._u[stepped] = out.state[stepped]

@@ -17,12 +17,12 @@ from gymnasium import spaces
 
 from ..physics import Physics
 
-__all__ = ["Task", "TransitionBatch"]
+__all__ = ["StepOutcome", "Task"]
 
 
 @dataclass
-class TransitionBatch:
-    """Result of advancing a batch of environments by one control step."""
+class StepOutcome:
+    """What advancing a batch of environments by one control step gives (not a stored transition)."""
 
     state: np.ndarray  # (B, state_dim) float64: next state (the pre-step state where diverged)
     reward: np.ndarray  # (B,) float64
@@ -77,8 +77,9 @@ class Task(ABC):
             raise ValueError("options['initial_state'] contains NaN or inf; pass a finite physical state")
         return arr
 
-    def advance(self, u: np.ndarray, k: np.ndarray, physical_action: np.ndarray) -> TransitionBatch:
-        """One control step for a batch; blown-up environments keep their pre-step state."""
+    def advance(self, u: np.ndarray, physical_action: np.ndarray, k: np.ndarray) -> StepOutcome:
+        """One control step for a batch (arguments in the order of :meth:`Physics.advance`); blown-up
+        environments keep their pre-step state."""
         u_next, reward = self.physics.advance(u, physical_action, k)
         reward = np.asarray(reward, dtype=np.float64) + np.zeros(len(u))
         diverged = self.physics.diverged(u_next) | ~np.isfinite(reward)
@@ -86,7 +87,7 @@ class Task(ABC):
         if diverged.any():
             u_next = np.where(diverged[:, None], u, u_next)
             reward = np.where(diverged, self.divergence_penalty, reward)
-        return TransitionBatch(u_next, reward, terminated, diverged)
+        return StepOutcome(u_next, reward, terminated, diverged)
 
     @staticmethod
     def _box_action(actions: Any, batch: int, space: spaces.Box, low: np.ndarray, high: np.ndarray) -> np.ndarray:

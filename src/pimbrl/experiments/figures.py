@@ -21,21 +21,21 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from .. import training
 from ..envs import KSTask, ks_initial_state_pool
 from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
+from ..training import Run
 
 __all__ = ["ks_contours", "burgers_episodes", "model_error_histograms", "rollout_snapshots", "load_run"]
 
 
-def load_run(run_dir: str | Path) -> Any:
-    """The trainer of a run at its latest checkpoint (agent, model, config, environments)."""
-    from ..training import resume_trainer
-
-    trainer = resume_trainer(str(run_dir), progress=False, inspect_only=True)
-    if not trainer.run_dir.checkpoint_path.exists():
+def load_run(run_dir: str | Path) -> Run:
+    """A run at its latest checkpoint (agent, model, config, environments); no file is changed."""
+    run = training.load_run(run_dir)
+    if not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{run_dir} has no checkpoint: train it first")
-    return trainer
+    return run
 
 
 def _policy(trainer: Any) -> Any:
@@ -44,7 +44,7 @@ def _policy(trainer: Any) -> Any:
 
 
 def _test_states(trainer: Any, n: int) -> np.ndarray:
-    task = trainer.env.unwrapped.task
+    task = trainer.task
     if isinstance(task, KSTask):
         return ks_initial_state_pool("test", task.pool_config, verbose=False).states[:n]
     return task.sample_initial_states(np.random.default_rng(trainer.cfg.eval_seed), n)
@@ -132,7 +132,8 @@ def model_error_histograms(model_eval_dir: str | Path, out: str | Path) -> Path:
 def rollout_snapshots(run_dir: str | Path, out: str | Path, lengths: Sequence[int] = (3, 8, 40, 120), n_states: int = 3) -> Path:
     """Model-predicted states after ``l`` chained model steps against the true environment (same actions)."""
     trainer = load_run(run_dir)
-    if not hasattr(trainer, "model"):
+    model = trainer.transition_model
+    if model is None:
         raise ValueError(f"{run_dir} is a {trainer.cfg.method} run without a model; use an mbrl or pimbrl run")
     physics = trainer.physics
     task = trainer.task
@@ -148,9 +149,7 @@ def rollout_snapshots(run_dir: str | Path, out: str | Path, lengths: Sequence[in
             a_phys = task.physical_action(trainer.adapter.to_env(trainer.agent.act(obs, deterministic=True)), n_states)
             true[step + 1], _ = physics.advance(true[step], a_phys, k)
             pred[step + 1] = (
-                trainer.model.predict_next(
-                    torch.as_tensor(pred[step], dtype=torch.float32), torch.as_tensor(a_phys, dtype=torch.float32)
-                )
+                model.predict_next(torch.as_tensor(pred[step], dtype=torch.float32), torch.as_tensor(a_phys, dtype=torch.float32))
                 .double()
                 .numpy()
             )

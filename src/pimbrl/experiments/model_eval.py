@@ -122,7 +122,7 @@ def collect_transitions(
     count = 0
     while count < n:
         a_phys = task.physical_action(_random_env_actions(task, rng, batch), batch)
-        out = task.advance(u, k, a_phys)
+        out = task.advance(u, a_phys, k)
         ok = ~out.diverged
         states.append(u[ok])
         actions.append(a_phys[ok])

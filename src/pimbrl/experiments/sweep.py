@@ -140,17 +140,16 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
 def execute_trial(trial: Trial) -> dict[str, Any]:
     """Train (or resume) one trial in this process; never raises (a failure is returned)."""
     from ..cli import build_train_config
-    from ..training import RunDirectory, create_trainer, resume_trainer
+    from ..training import RunDirectory, resume_training, run_training
 
     try:
         status = RunDirectory(trial.path).status
         if status == "finished":
             return {"path": trial.path, "ok": True, "skipped": True}
         if status is None:
-            trainer = create_trainer(build_train_config(list(trial.argv)), trial.path, progress=False)
+            run_training(build_train_config(list(trial.argv)), trial.path, progress=False)
         else:
-            trainer = resume_trainer(trial.path, progress=False)
-        trainer.run()
+            resume_training(trial.path, progress=False)
         return {"path": trial.path, "ok": True, "skipped": False}
     except Exception as exc:  # reported, the other trials go on
         return {"path": trial.path, "ok": False, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}

@@ -1,13 +1,12 @@
 """Transition models, the physics-informed residual, model training and imagined environments."""
 
-from .model_env import ImaginedBatch, ModelEnv
+from .model_env import ModelEnv
 from .networks import ConvLSTMModel, MLPModel, TransitionModel, make_model
 from .residual import PhysicsResidual
 from .trainer import ModelTrainer, TransitionData
 
 __all__ = [
     "ConvLSTMModel",
-    "ImaginedBatch",
     "MLPModel",
     "ModelEnv",
     "ModelTrainer",

@@ -3,49 +3,30 @@
 Rewards and terminations come from the same :class:`~pimbrl.physics.Physics` methods the simulator uses,
 evaluated on the predicted states (the KS reward integrates over the model's intermediate states);
 observations from the same :class:`~pimbrl.envs.Task`. Each imagined step is one batched model call for
-all rollouts. A rollout whose prediction is non-finite or leaves the physics' divergence bound stops
-there, and that step is not returned, so no NaN or runaway state reaches a replay buffer.
+all rollouts.
+
+Blow-ups differ from the real environment on purpose. A real step that blows up ends the episode with the
+task's ``divergence_penalty`` (the physics did it). An imagined prediction that is non-finite or leaves
+the physics' divergence bound is an error of the *model*, not an outcome of the action: the rollout stops
+there and that step is not returned (no penalty is taught for it), so no NaN, runaway state or
+model-made penalty reaches a replay buffer. ``tests/test_models.py`` checks both behaviours.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from ..buffers import Transitions
 from ..envs import Task
 from ..spaces import ActionAdapter
 from .networks import TransitionModel
 
-__all__ = ["ImaginedBatch", "ModelEnv"]
+__all__ = ["ModelEnv"]
 
 Policy = Callable[[np.ndarray], np.ndarray]  # observations (B, obs_dim) -> normalised actions (B, act_dim)
-
-
-@dataclass
-class ImaginedBatch:
-    """Imagined transitions (NumPy), ready for a replay buffer."""
-
-    obs: np.ndarray
-    action: np.ndarray  # normalised agent actions
-    reward: np.ndarray
-    next_obs: np.ndarray
-    terminated: np.ndarray
-    truncated: np.ndarray
-    state: np.ndarray
-    next_state: np.ndarray
-    phys_action: np.ndarray
-    k: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.reward)
-
-    @staticmethod
-    def concat(parts: list[ImaginedBatch]) -> ImaginedBatch:
-        fields = ImaginedBatch.__dataclass_fields__
-        return ImaginedBatch(**{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields})
 
 
 class ModelEnv:
@@ -55,7 +36,8 @@ class ModelEnv:
         model: the learned transition model.
         task: the environment's task (observation, action mapping, episode length).
         adapter: maps normalised agent actions to environment actions.
-        rng: draws the stochastic ``Discrete(2)`` action mapping during imagination (as in training).
+        rng: draws the stochastic ``Discrete(2)`` action mapping during imagination (as in training); the
+            training loop gives it the imagination stream, never the real environment's.
     """
 
     def __init__(
@@ -72,7 +54,7 @@ class ModelEnv:
     def step(
         self, state: np.ndarray, k: np.ndarray, action: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """One imagined control step for a batch: ``(next_state, reward, terminated, valid, phys_action)``.
+        """One imagined control step for a batch: ``(next_state, reward, terminated, valid, physical_action)``.
 
         ``valid`` is False where the prediction blew up (those rows must be discarded).
         """
@@ -90,12 +72,12 @@ class ModelEnv:
         valid &= np.isfinite(reward)
         return nxt, reward, terminated, valid, phys_a
 
-    def rollout(self, state: np.ndarray, k: np.ndarray, policy: Policy, length: int) -> ImaginedBatch:
+    def rollout(self, state: np.ndarray, k: np.ndarray, policy: Policy, length: int) -> Transitions:
         """Up to ``length`` imagined steps from each start state (``(B, n)`` physical states, steps ``k``)."""
         state = np.asarray(state, dtype=np.float64)
         k = np.asarray(k, dtype=np.int64).copy()
         horizon = self.task.max_episode_steps
-        parts: list[ImaginedBatch] = []
+        parts: list[Transitions] = []
         alive = np.ones(len(state), dtype=bool)
         for _ in range(length):
             if not alive.any():
@@ -107,7 +89,7 @@ class ModelEnv:
             truncated = (kk + 1) >= horizon
             keep = valid
             parts.append(
-                ImaginedBatch(
+                Transitions(
                     obs=obs[keep],
                     action=action[keep],
                     reward=reward[keep],
@@ -116,7 +98,7 @@ class ModelEnv:
                     truncated=truncated[keep] & ~terminated[keep],
                     state=s[keep],
                     next_state=nxt[keep],
-                    phys_action=phys_a[keep],
+                    physical_action=phys_a[keep],
                     k=kk[keep],
                 )
             )
@@ -125,14 +107,16 @@ class ModelEnv:
             k[idx] += 1
             alive[idx] = valid & ~terminated & ~truncated
         if not parts:
-            return ImaginedBatch.concat([self._empty()])
-        return ImaginedBatch.concat(parts)
+            return self._empty()
+        return Transitions.concat(parts)
 
-    def _empty(self) -> ImaginedBatch:
+    def _empty(self) -> Transitions:
         n, m = self.physics.state_dim, self.physics.action_dim
-        obs_dim = int(np.prod(self.task.observation_space.shape))
+        shape = self.task.observation_space.shape
+        assert shape is not None, "pimbrl tasks have Box observation spaces"
+        obs_dim = int(np.prod(shape))
         z = np.zeros
-        return ImaginedBatch(
+        return Transitions(
             z((0, obs_dim), np.float32), z((0, self.adapter.dim), np.float32), z(0), z((0, obs_dim), np.float32),
             z(0, bool), z(0, bool), z((0, n)), z((0, n)), z((0, m)), z(0, np.int64),
         )  # fmt: skip

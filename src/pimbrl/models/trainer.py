@@ -125,12 +125,15 @@ class ModelTrainer:
         rng: np.random.Generator,
         labelled: TransitionSource | None = None,
         unlabelled: TransitionSource | None = None,
+        unlabelled_rng: np.random.Generator | None = None,
     ) -> dict[str, float]:
         """``steps`` gradient steps on random batches; returns the metrics averaged over the steps.
 
         ``labelled`` and ``unlabelled`` are anything with ``sample(batch, rng) -> TransitionData``
-        (a :class:`TransitionData`, or a view of a replay buffer).
+        (a :class:`TransitionData`, or a view of a replay buffer). Labelled batches draw from ``rng``,
+        unlabelled ones from ``unlabelled_rng`` (default: ``rng`` too).
         """
+        physics_rng = rng if unlabelled_rng is None else unlabelled_rng
         first = labelled if labelled is not None else unlabelled
         if isinstance(first, TransitionData):
             self.ensure_normalization(first)
@@ -138,7 +141,7 @@ class ModelTrainer:
         for _ in range(steps):
             m = self.step(
                 None if labelled is None else labelled.sample(batch_size, rng),
-                None if unlabelled is None else unlabelled.sample(batch_size, rng),
+                None if unlabelled is None else unlabelled.sample(batch_size, physics_rng),
             )
             for k, v in m.items():
                 totals[k] = totals.get(k, 0.0) + v

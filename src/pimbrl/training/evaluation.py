@@ -57,9 +57,10 @@ class Evaluator:
         self.seed = int(seed)
         probe = gym.make(env_id, **env_kwargs)
         self.adapter = ActionAdapter(probe.action_space)
-        self.native = isinstance(probe.unwrapped, PhysicsEnv)
-        if self.native:
-            task = probe.unwrapped.task
+        base = probe.unwrapped
+        self.native = isinstance(base, PhysicsEnv)
+        if isinstance(base, PhysicsEnv):
+            task = base.task
             if isinstance(task, KSTask):
                 pool = ks_initial_state_pool("test", task.pool_config).states
                 if self.episodes > len(pool):

@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["RunDirectory", "CsvLog", "atomic_write_bytes", "package_versions"]
+__all__ = ["CsvLog", "RunDirectory", "atomic_write_bytes", "package_versions", "steps_to_threshold"]
 
 CHECKPOINT_VERSION = 1
 
@@ -55,6 +55,16 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             os.close(dir_fd)
     except OSError:
         pass
+
+
+def steps_to_threshold(evaluations: list[dict[str, Any]], threshold: float | None) -> int | None:
+    """First evaluation step whose mean return reaches ``threshold`` (``None`` if never)."""
+    if threshold is None:
+        return None
+    for row in evaluations:
+        if float(row["return_mean"]) >= threshold:
+            return int(float(row["step"]))
+    return None
 
 
 def package_versions() -> dict[str, str]:
@@ -186,8 +196,6 @@ class RunDirectory:
     def result(self, threshold: float | None = None) -> dict[str, Any] | None:
         """What a run has reached so far (``None`` without evaluations): steps, steps to ``threshold``
         (default: the run's own), final and best mean test return, wall-clock, updates and its curves."""
-        from .loop import steps_to_threshold
-
         if self.status is None:
             return None
         rows = self.evaluations.read()

@@ -1,37 +1,25 @@
-"""Creating and resuming runs: the right trainer for each method."""
+"""Entry points: train a new run, resume one, open one for inspection."""
 
 from __future__ import annotations
 
-from ..config import from_dict
+from pathlib import Path
+
 from .config import TrainConfig
-from .dyna import DynaTrainer
-from .loop import RunSummary, Trainer
-from .rundir import RunDirectory
+from .loop import Run, RunSummary, create_run, open_run, train
 
-__all__ = ["create_trainer", "resume_trainer", "resume_training", "run_training", "trainer_class"]
+__all__ = ["load_run", "resume_training", "run_training"]
 
 
-def trainer_class(method: str) -> type[Trainer]:
-    """:class:`Trainer` for ``mfrl``, :class:`DynaTrainer` for ``mbrl`` and ``pimbrl``."""
-    return Trainer if method == "mfrl" else DynaTrainer
-
-
-def create_trainer(cfg: TrainConfig, path: str, progress: bool = True, command: str = "") -> Trainer:
-    """A new run of ``cfg`` in ``path``."""
-    return trainer_class(cfg.method).create(cfg, path, progress=progress, command=command)
-
-
-def resume_trainer(path: str, progress: bool = True, inspect_only: bool = False) -> Trainer:
-    """The run in ``path``, at its last checkpoint (``inspect_only``: read it without changing any file)."""
-    cfg = from_dict(TrainConfig, RunDirectory(path).read_config()["config"])
-    return trainer_class(cfg.method).resume(path, progress=progress, inspect_only=inspect_only)
-
-
-def run_training(cfg: TrainConfig, path: str, *, progress: bool = True, command: str = "") -> RunSummary:
+def run_training(cfg: TrainConfig, path: str | Path, *, progress: bool = True, command: str = "") -> RunSummary:
     """Create a new run of ``cfg`` in ``path`` and train it to the end; returns its summary."""
-    return create_trainer(cfg, path, progress=progress, command=command).run()
+    return train(create_run(cfg, path, progress=progress, command=command))
 
 
-def resume_training(path: str, *, progress: bool = True) -> RunSummary:
+def resume_training(path: str | Path, *, progress: bool = True) -> RunSummary:
     """Continue the run in ``path`` from its last checkpoint to the end (a finished run returns at once)."""
-    return resume_trainer(path, progress=progress).run()
+    return train(open_run(path, progress=progress))
+
+
+def load_run(path: str | Path) -> Run:
+    """The run in ``path`` at its last checkpoint, for evaluation and figures; no file is changed."""
+    return open_run(path, progress=False, inspect_only=True)
