@@ -14,7 +14,7 @@ import typing
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-__all__ = ["ConfigError", "param", "validate", "to_dict", "from_dict", "add_arguments", "overrides_from_args", "replace_path"]
+__all__ = ["ConfigError", "add_arguments", "from_dict", "overrides_from_args", "param", "replace_path", "to_dict", "validate"]
 
 T = TypeVar("T")
 

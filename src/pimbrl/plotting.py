@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 import matplotlib
 
 matplotlib.use("Agg")  # files only; never needs a display
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from .simulate import EpisodeRecord
 
-__all__ = ["plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band", "STATE_LABELS"]
+__all__ = ["STATE_LABELS", "plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band"]
 
 STATE_LABELS = {
     "pimbrl/CartPole-v0": ["x", "x_dot", "theta", "theta_dot"],
@@ -82,7 +82,8 @@ def plot_episode(
 ) -> Path:
     """Plot one episode to ``path``: a space-time contour for fields (``x`` given), else state curves;
     actions and rewards below. ``field_offset`` (per control step) is subtracted from a field, e.g. a
-    reference to show the tracking error."""
+    reference to show the tracking error.
+    """
     t_state = np.arange(record.states.shape[0]) * record.control_dt
     t_act = np.arange(record.length) * record.control_dt
     if x is not None:
@@ -115,7 +116,8 @@ def seed_band(
 ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One curve from several seeds' evaluations (dicts with ``step``, ``return_mean``, ``return_min``,
     ``return_max``): the mean over seeds of the mean return, and the band from the lowest to the highest
-    test episode of any seed, over the steps all seeds reached."""
+    test episode of any seed, over the steps all seeds reached.
+    """
     n = min(len(c["step"]) for c in curves)
     return (
         f"{label} ({len(curves)} seed{'s' if len(curves) > 1 else ''})",
@@ -134,7 +136,8 @@ def plot_learning_curves(
     xlabel: str = "real environment steps",
 ) -> Path:
     """Learning curves as the paper draws them: the mean test return as a line and the min-max range of
-    the test episodes as a band, one curve per ``(label, steps, mean, low, high)``."""
+    the test episodes as a band, one curve per ``(label, steps, mean, low, high)``.
+    """
     fig, ax = plt.subplots(figsize=(8, 5))
     for label, steps, mean, low, high in curves:
         (line,) = ax.plot(steps, mean, label=label, lw=1.6)

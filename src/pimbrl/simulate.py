@@ -11,7 +11,7 @@ import numpy as np
 
 from .envs import PhysicsEnv
 
-__all__ = ["EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode", "ENV_ALIASES"]
+__all__ = ["ENV_ALIASES", "EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode"]
 
 #: short names accepted wherever an environment id is expected
 ENV_ALIASES = {
@@ -37,7 +37,8 @@ def resolve_env_id(name: str) -> str:
 @dataclass
 class EpisodeRecord:
     """One recorded episode. ``states`` are physical states when the env exposes them (pimbrl envs),
-    else observations; ``actions`` are the actions passed to ``env.step``."""
+    else observations; ``actions`` are the actions passed to ``env.step``.
+    """
 
     env_id: str
     states: np.ndarray  # (T + 1, state_dim)

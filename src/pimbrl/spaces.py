@@ -47,7 +47,8 @@ class ActionAdapter:
 
     def to_env(self, a: np.ndarray, rng: np.random.Generator | None = None) -> Any:
         """Environment action(s) for normalised ``a`` of shape ``(dim,)`` or ``(B, dim)``; ``rng`` samples the
-        ``Discrete(2)`` mapping (training), without it the more probable action is taken (evaluation)."""
+        ``Discrete(2)`` mapping (training), without it the more probable action is taken (evaluation).
+        """
         a = np.asarray(a)
         if self.kind == "box":
             env_a = self.low + (np.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)

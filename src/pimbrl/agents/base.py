@@ -55,7 +55,8 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
 
 class frozen:
     """Context manager: parameters of a module do not accumulate gradients inside (e.g. the critic
-    during an actor update), so no time is spent computing gradients that would be discarded."""
+    during an actor update), so no time is spent computing gradients that would be discarded.
+    """
 
     def __init__(self, module: nn.Module) -> None:
         self.params = [p for p in module.parameters() if p.requires_grad]
@@ -146,7 +147,8 @@ class Agent(ABC):
 
     def _critic_step(self, batch: Batch, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One step of ``self.critic`` (an ensemble) towards ``target``: the loss is the sum over the members
-        of their mean squared TD errors. Returns ``(loss, q)``, detached."""
+        of their mean squared TD errors. Returns ``(loss, q)``, detached.
+        """
         q = self.critic(batch.obs, batch.action)
         loss = (q - target).pow(2).mean(dim=1).sum()
         self._check_finite(loss, "the critic loss")

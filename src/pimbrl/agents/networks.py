@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-__all__ = ["mlp", "DeterministicActor", "GaussianActor", "CriticEnsemble"]
+__all__ = ["CriticEnsemble", "DeterministicActor", "GaussianActor", "mlp"]
 
 
 def mlp(

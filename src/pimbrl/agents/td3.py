@@ -18,7 +18,7 @@ from ..buffers import Batch
 from .base import Agent, frozen, make_optimizer, polyak_update, target_copy
 from .networks import CriticEnsemble, DeterministicActor
 
-__all__ = ["TD3", "DDPG"]
+__all__ = ["DDPG", "TD3"]
 
 
 class TD3(Agent):
@@ -90,7 +90,8 @@ class TD3(Agent):
 
 class DDPG(TD3):
     """Deep deterministic policy gradient (Lillicrap et al. 2016): one critic, actor and targets updated
-    every step, no target-policy smoothing."""
+    every step, no target-policy smoothing.
+    """
 
     name = "ddpg"
     n_critics = 1

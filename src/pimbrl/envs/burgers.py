@@ -11,7 +11,7 @@ from ..physics import Burgers
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .task import Task
 
-__all__ = ["BurgersTask", "BurgersEnv", "BurgersVectorEnv"]
+__all__ = ["BurgersEnv", "BurgersTask", "BurgersVectorEnv"]
 
 
 class BurgersTask(Task):

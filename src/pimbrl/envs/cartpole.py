@@ -11,7 +11,7 @@ from ..physics import CartPole
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .task import Task
 
-__all__ = ["CartPoleTask", "CartPoleEnv", "CartPoleVectorEnv"]
+__all__ = ["CartPoleEnv", "CartPoleTask", "CartPoleVectorEnv"]
 
 
 class CartPoleTask(Task):

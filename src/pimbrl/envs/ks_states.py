@@ -36,7 +36,7 @@ import numpy as np
 from ..physics import KuramotoSivashinsky
 from ..physics.kernels import cache_dir
 
-__all__ = ["KSPoolConfig", "KSPool", "ks_initial_state_pool"]
+__all__ = ["KSPool", "KSPoolConfig", "ks_initial_state_pool"]
 
 _POOL_VERSION = 1
 Split = Literal["train", "test"]

@@ -11,7 +11,7 @@ from ..physics import Pendulum, wrap_angle
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .task import Task
 
-__all__ = ["PendulumTask", "PendulumEnv", "PendulumVectorEnv"]
+__all__ = ["PendulumEnv", "PendulumTask", "PendulumVectorEnv"]
 
 
 class PendulumTask(Task):

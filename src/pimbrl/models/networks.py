@@ -18,7 +18,7 @@ from torch import nn
 from ..physics import Physics
 from ..physics.pde import SemilinearPDE
 
-__all__ = ["TransitionModel", "MLPModel", "ConvLSTMModel", "make_model"]
+__all__ = ["ConvLSTMModel", "MLPModel", "TransitionModel", "make_model"]
 
 
 class TransitionModel(nn.Module):

@@ -19,7 +19,7 @@ from .kernels import PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil
 
-__all__ = ["Burgers", "BURGERS_D2", "BURGERS_UPWIND"]
+__all__ = ["BURGERS_D2", "BURGERS_UPWIND", "Burgers"]
 
 #: 4th-order central second difference (raw: divide by dx^2).
 BURGERS_D2 = Stencil.centered((-1 / 12, 4 / 3, -5 / 2, 4 / 3, -1 / 12), "D2")

@@ -40,7 +40,7 @@ from numba import boolean, float64, int64
 
 from .stencil import Stencil
 
-__all__ = ["PDEKernelSpec", "build_pde_kernel", "cache_dir", "N_REWARD_TERMS"]
+__all__ = ["N_REWARD_TERMS", "PDEKernelSpec", "build_pde_kernel", "cache_dir"]
 
 N_REWARD_TERMS = 4
 _GENERATOR_VERSION = "4"
@@ -48,7 +48,8 @@ _GENERATOR_VERSION = "4"
 
 def cache_dir() -> Path:
     """Directory for pimbrl's caches: ``$PIMBRL_CACHE_DIR``, else ``$XDG_CACHE_HOME/pimbrl``, else
-    ``~/.cache/pimbrl``."""
+    ``~/.cache/pimbrl``.
+    """
     env = os.environ.get("PIMBRL_CACHE_DIR")
     if env:
         return Path(env)

@@ -22,7 +22,7 @@ from .kernels import PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil, apply_upwind
 
-__all__ = ["KuramotoSivashinsky", "KS_D1", "KS_D2", "KS_D4", "KS_UPWIND_BACKWARD", "KS_UPWIND_FORWARD"]
+__all__ = ["KS_D1", "KS_D2", "KS_D4", "KS_UPWIND_BACKWARD", "KS_UPWIND_FORWARD", "KuramotoSivashinsky"]
 
 #: 6th-order central second difference (raw: divide by dx^2).
 KS_D2 = Stencil.centered((1 / 90, -3 / 20, 3 / 2, -49 / 18, 3 / 2, -3 / 20, 1 / 90), "D2")
@@ -151,7 +151,8 @@ class KuramotoSivashinsky(SemilinearPDE):
 
     def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Like :meth:`advance` but also returns the step-averaged reward integrands ``(B, 4)``:
-        ``(u_next, terms, reward)``."""
+        ``(u_next, terms, reward)``.
+        """
         return self.run_kernel(u, a, True, self.reward_weights)
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -28,13 +28,14 @@ from .base import Array, Physics, superpose
 from .kernels import PDEKernelSpec, build_pde_kernel
 from .stencil import Stencil
 
-__all__ = ["SemilinearPDE", "ETDRK4"]
+__all__ = ["ETDRK4", "SemilinearPDE"]
 
 
 class SemilinearPDE(Physics):
     """Base class of the periodic PDE systems. Subclasses set, in ``__init__``: :attr:`n`, :attr:`x`,
     :attr:`linear`, :attr:`nonlinear_coef`, :attr:`actuator_shapes`, :attr:`method` and the
-    :class:`Physics` attributes, and implement :meth:`upwind` and :meth:`kernel_spec`."""
+    :class:`Physics` attributes, and implement :meth:`upwind` and :meth:`kernel_spec`.
+    """
 
     n: int
     x: np.ndarray
