@@ -44,18 +44,22 @@ class SAC(Agent):
 
     @property
     def alpha(self) -> torch.Tensor:
+        """The entropy temperature ``exp(log_alpha)`` (detached)."""
         return self.log_alpha.detach().exp()
 
     def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        """The squashed mean action (no sampling)."""
         return self.actor(obs, deterministic=True)[0]
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Sampled actions from the squashed Gaussian, or its mean if ``deterministic``."""
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
         a, _ = self.actor(obs_t, deterministic=deterministic, generator=self.generator)
         return a.numpy().astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One critic step, one actor step, one temperature step (if tuned), then a target update."""
         cfg = self.config
         alpha = self.alpha
         with torch.no_grad():

@@ -55,10 +55,12 @@ class TD3(Agent):
         }
 
     def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        """The actor's action (no exploration noise)."""
         return self.actor(obs)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """The actor's actions, plus clipped Gaussian exploration noise unless ``deterministic``."""
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
         a = self.actor(obs_t).numpy()
         if not deterministic and self.config.exploration_noise > 0:
@@ -66,6 +68,7 @@ class TD3(Agent):
         return a.astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One critic step; every ``policy_delay`` updates (every update for DDPG) also an actor step and target updates."""
         cfg = self.config
         with torch.no_grad():
             next_a = self.actor_targ(batch.next_obs)
@@ -89,8 +92,9 @@ class TD3(Agent):
 
 
 class DDPG(TD3):
-    """Deep deterministic policy gradient (Lillicrap et al. 2016): one critic, actor and targets updated
-    every step, no target-policy smoothing.
+    """Deep deterministic policy gradient (Lillicrap et al. 2016).
+
+    One critic, actor and targets updated every step, no target-policy smoothing.
     """
 
     name = "ddpg"
