@@ -91,7 +91,9 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
     n_target = cfg.n_train if split == "train" else cfg.n_test
     stream = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(0 if split == "train" else 1,)))
     zeros = np.zeros((cfg.batch, 4))
-    states, terms, runs = [], [], []
+    states: list[np.ndarray] = []
+    terms: list[np.ndarray] = []
+    runs: list[np.ndarray] = []
     run0 = 0
     while sum(len(s) for s in states) < n_target:
         u = _random_smooth_fields(stream, cfg.batch, physics)
