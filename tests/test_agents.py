@@ -39,6 +39,7 @@ def _train_toy(tmp_path, agent: str, env: str = "toy/Reach-v0", steps: int = 300
     return train(run), run
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("agent", ["td3", "ddpg", "sac"])
 def test_agent_learns_the_toy_task(tmp_path, agent: str) -> None:
     summary, trainer = _train_toy(tmp_path, agent, steps=2000)
@@ -54,6 +55,7 @@ def test_td3_drives_discrete_cartpole_style_actions(tmp_path) -> None:
     assert summary.best_return_mean is not None and summary.best_return_mean > -2.0
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_metrics(tmp_path) -> None:
     _, a = _train_toy(tmp_path / "a", "td3", steps=1200)
     _, b = _train_toy(tmp_path / "b", "td3", steps=1200)

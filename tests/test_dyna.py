@@ -85,6 +85,7 @@ def _record(cfg, path) -> tuple[Recorder, Run]:
     return recorder, run
 
 
+@pytest.mark.slow
 def test_phases_start_in_the_configured_order(tmp_path) -> None:
     cfg = resolve_config(
         "pimbrl/Pendulum-v0",
@@ -135,6 +136,7 @@ RESUME_DYNA = [
 ]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_kill_and_resume_in_the_middle_of_the_model_based_phase(tmp_path) -> None:
     ref, killed = tmp_path / "ref", tmp_path / "killed"
     assert main(["train", *RESUME_DYNA, "--run-dir", str(ref)]) == 0
@@ -150,6 +152,7 @@ def test_kill_and_resume_in_the_middle_of_the_model_based_phase(tmp_path) -> Non
         assert _table(ref, name, drop) == _table(killed, name, drop), name
 
 
+@pytest.mark.slow
 def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
     root = tmp_path / "cmp"
     args = [

@@ -36,6 +36,7 @@ def _results(path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_s"} for r in csv.DictReader(fh)]
 
 
+@pytest.mark.slow
 def test_sweep_in_process_and_on_ray_give_the_same_table(tmp_path, capsys) -> None:
     pytest.importorskip("ray")
     spec = _sweep_file(tmp_path)

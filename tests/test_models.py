@@ -96,6 +96,7 @@ def test_gradients_reach_every_parameter(model_kind: str) -> None:
         assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
 
 
+@pytest.mark.slow
 def test_ode_model_learns_from_the_physics_loss_alone() -> None:
     """No labels: the equation alone teaches the Cart-Pole model its dynamics."""
     torch.manual_seed(0)

@@ -150,6 +150,7 @@ def kill_when(args: list[str], run: Path, ready) -> None:
     assert json.loads((run / "config.json").read_text())["status"] == "running", "the run finished before the kill"
 
 
+@pytest.mark.slow
 def test_kill_minus_nine_and_resume_equals_uninterrupted(tmp_path) -> None:
     ref, killed = tmp_path / "ref", tmp_path / "killed"
     assert main(["train", *RESUME_ARGS, "--run-dir", str(ref)]) == 0

@@ -1,5 +1,7 @@
-"""Typed configuration helpers: dataclass fields with documented checks, validation, (de)serialisation and
-command-line flags generated from the fields.
+"""Typed configuration helpers.
+
+Dataclass fields with documented checks, validation, (de)serialisation and command-line flags generated
+from the fields.
 
 A field declared with :func:`param` carries its help text and a check; :func:`validate` runs every check
 and raises :class:`ConfigError` naming the field, its allowed range and the bad value.
@@ -12,11 +14,15 @@ import dataclasses
 import types
 import typing
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
-__all__ = ["ConfigError", "param", "validate", "to_dict", "from_dict", "add_arguments", "overrides_from_args", "replace_path"]
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
-T = TypeVar("T")
+__all__ = ["ConfigError", "add_arguments", "from_dict", "overrides_from_args", "param", "replace_path", "to_dict", "validate"]
+
+#: a dataclass instance (typeshed's protocol: anything with ``__dataclass_fields__``)
+D = TypeVar("D", bound="DataclassInstance")
 
 
 class _Unset:
@@ -89,17 +95,17 @@ def _field_types(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
 
-def from_dict(cls: type[T], data: dict[str, Any]) -> T:
+def from_dict(cls: type[D], data: dict[str, Any]) -> D:
     """Rebuild a (nested) config dataclass from :func:`to_dict` output; unknown keys are an error."""
     hints = _field_types(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
     if unknown:
         raise ConfigError(f"unknown {cls.__name__} field(s): {', '.join(sorted(unknown))}")
-    kwargs = {}
+    kwargs: dict[str, Any] = {}
     for key, value in data.items():
         tp = hints[key]
-        if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+        if isinstance(tp, type) and dataclasses.is_dataclass(tp) and isinstance(value, dict):
             kwargs[key] = from_dict(tp, value)
         elif _base_type(tp) is tuple and isinstance(value, list):
             kwargs[key] = tuple(value)
@@ -162,12 +168,17 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", 
     for an optional field sets it to ``None``.
     """
     hints = _field_types(cls)
-    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+    for f in dataclasses.fields(cls):
         tp = hints[f.name]
         if f.name in skip or dataclasses.is_dataclass(tp) or _base_type(tp) is dict:
             continue
         flag = f"--{prefix}{f.name.replace('_', '-')}"
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name} has no default: a config field needs one to make an optional flag")
         parser.add_argument(
             flag,
             dest=f"{prefix}{f.name}",
@@ -181,18 +192,18 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", 
 def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -> dict[str, Any]:
     """The fields of ``cls`` given on the command line, as ``{name: value}``."""
     out = {}
-    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+    for f in dataclasses.fields(cls):
         value = getattr(args, f"{prefix}{f.name}", UNSET)
         if value is not UNSET:
             out[f.name] = value
     return out
 
 
-def replace_path(cfg: T, path: str, value: Any) -> T:
+def replace_path(cfg: D, path: str, value: Any) -> D:
     """``dataclasses.replace`` through a dotted path, e.g. ``replace_path(cfg, "agent.gamma", 0.98)``."""
     head, _, rest = path.partition(".")
-    if not any(f.name == head for f in dataclasses.fields(cfg)):  # type: ignore[arg-type]
+    if not any(f.name == head for f in dataclasses.fields(cfg)):
         raise ConfigError(f"unknown field {path!r} in {type(cfg).__name__}")
     if rest:
-        return dataclasses.replace(cfg, **{head: replace_path(getattr(cfg, head), rest, value)})  # type: ignore[type-var]
-    return dataclasses.replace(cfg, **{head: value})  # type: ignore[type-var]
+        return dataclasses.replace(cfg, **{head: replace_path(getattr(cfg, head), rest, value)})
+    return dataclasses.replace(cfg, **{head: value})

@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 import matplotlib
 
 matplotlib.use("Agg")  # files only; never needs a display
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from .simulate import EpisodeRecord
 
-__all__ = ["plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band", "STATE_LABELS"]
+__all__ = ["STATE_LABELS", "plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band"]
 
 STATE_LABELS = {
     "pimbrl/CartPole-v0": ["x", "x_dot", "theta", "theta_dot"],
@@ -80,9 +80,12 @@ def plot_episode(
     x: np.ndarray | None = None,
     field_offset: Sequence[float] | np.ndarray | None = None,
 ) -> Path:
-    """Plot one episode to ``path``: a space-time contour for fields (``x`` given), else state curves;
-    actions and rewards below. ``field_offset`` (per control step) is subtracted from a field, e.g. a
-    reference to show the tracking error."""
+    """Plot one episode to ``path`` and return the path written.
+
+    The top panel is a space-time contour for fields (``x`` given), else state curves; actions and
+    rewards are below. ``field_offset`` (per control step) is subtracted from a field, e.g. a reference
+    to show the tracking error.
+    """
     t_state = np.arange(record.states.shape[0]) * record.control_dt
     t_act = np.arange(record.length) * record.control_dt
     if x is not None:
@@ -113,9 +116,12 @@ def plot_episode(
 def seed_band(
     label: str, curves: Sequence[dict[str, Sequence[float]]]
 ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One curve from several seeds' evaluations (dicts with ``step``, ``return_mean``, ``return_min``,
-    ``return_max``): the mean over seeds of the mean return, and the band from the lowest to the highest
-    test episode of any seed, over the steps all seeds reached."""
+    """One curve from several seeds' evaluations, as ``(label, steps, mean, low, high)``.
+
+    Each evaluation is a dict with ``step``, ``return_mean``, ``return_min`` and ``return_max``. The curve
+    is the mean over seeds of the mean return, and the band runs from the lowest to the highest test
+    episode of any seed, over the steps all seeds reached.
+    """
     n = min(len(c["step"]) for c in curves)
     return (
         f"{label} ({len(curves)} seed{'s' if len(curves) > 1 else ''})",
@@ -133,8 +139,10 @@ def plot_learning_curves(
     threshold: float | None = None,
     xlabel: str = "real environment steps",
 ) -> Path:
-    """Learning curves as the paper draws them: the mean test return as a line and the min-max range of
-    the test episodes as a band, one curve per ``(label, steps, mean, low, high)``."""
+    """Learning curves as the paper draws them, one per ``(label, steps, mean, low, high)``.
+
+    The mean test return is drawn as a line and the min-max range of the test episodes as a band.
+    """
     fig, ax = plt.subplots(figsize=(8, 5))
     for label, steps, mean, low, high in curves:
         (line,) = ax.plot(steps, mean, label=label, lw=1.6)

@@ -11,7 +11,7 @@ import numpy as np
 
 from .envs import PhysicsEnv
 
-__all__ = ["EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode", "ENV_ALIASES"]
+__all__ = ["ENV_ALIASES", "EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode"]
 
 #: short names accepted wherever an environment id is expected
 ENV_ALIASES = {
@@ -36,8 +36,11 @@ def resolve_env_id(name: str) -> str:
 
 @dataclass
 class EpisodeRecord:
-    """One recorded episode. ``states`` are physical states when the env exposes them (pimbrl envs),
-    else observations; ``actions`` are the actions passed to ``env.step``."""
+    """One recorded episode.
+
+    ``states`` are physical states when the env exposes them (pimbrl envs), else observations;
+    ``actions`` are the actions passed to ``env.step``.
+    """
 
     env_id: str
     states: np.ndarray  # (T + 1, state_dim)
@@ -50,10 +53,12 @@ class EpisodeRecord:
 
     @property
     def total_return(self) -> float:
+        """Undiscounted sum of the episode's rewards."""
         return float(self.rewards.sum())
 
     @property
     def length(self) -> int:
+        """Number of steps taken."""
         return len(self.rewards)
 
 
@@ -72,6 +77,8 @@ def make_simple_policy(space: gym.Space, kind: str, rng: np.random.Generator, va
             if not space.contains(const):
                 raise ValueError(f"constant action {const} is not in {space}")
         else:
+            if space.shape is None:
+                raise TypeError(f"no constant policy for {space}: it has no shape")
             const = np.broadcast_to(np.asarray(value, dtype=space.dtype), space.shape).copy()
         return lambda obs: const
     raise ValueError(f"unknown policy {kind!r}: use zero, random or constant")
@@ -89,9 +96,10 @@ def run_episode(env: gym.Env, policy: Policy, seed: int | None = None, options: 
     """Run ``policy`` for one episode of ``env`` and record states, actions and rewards."""
     obs, _ = env.reset(seed=seed, options=options)
     base = env.unwrapped
-    physical = isinstance(base, PhysicsEnv)
-    states = [base.state if physical else np.asarray(obs, dtype=np.float64)]
-    actions, rewards = [], []
+    physical = base if isinstance(base, PhysicsEnv) else None
+    states = [physical.state if physical is not None else np.asarray(obs, dtype=np.float64)]
+    actions: list[np.ndarray] = []
+    rewards: list[float] = []
     terminated = truncated = False
     info: dict[str, Any] = {}
     while not (terminated or truncated):
@@ -99,7 +107,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int | None = None, options: 
         obs, reward, terminated, truncated, info = env.step(action)
         actions.append(np.asarray(action))
         rewards.append(float(reward))
-        states.append(base.state if physical else np.asarray(obs, dtype=np.float64))
-    control_dt = base.physics.control_dt if physical else float(getattr(base, "dt", getattr(base, "tau", 1.0)))
+        states.append(physical.state if physical is not None else np.asarray(obs, dtype=np.float64))
+    control_dt = physical.physics.control_dt if physical is not None else float(getattr(base, "dt", getattr(base, "tau", 1.0)))
     spec_id = env.spec.id if env.spec is not None else type(base).__name__
     return EpisodeRecord(spec_id, np.array(states), np.array(actions), np.array(rewards), terminated, truncated, control_dt, info)

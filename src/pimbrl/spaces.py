@@ -35,6 +35,7 @@ class ActionAdapter:
                 raise ValueError(f"the action space {space} must be bounded for an actor with a tanh output")
             self.kind = "box"
             self.dim = int(np.prod(space.shape))
+            self.box_shape = space.shape
             self.low = space.low.astype(np.float64).reshape(-1)
             self.high = space.high.astype(np.float64).reshape(-1)
         elif isinstance(space, spaces.Discrete):
@@ -46,12 +47,15 @@ class ActionAdapter:
             raise TypeError(f"unsupported action space {space}: pimbrl agents handle Box and Discrete")
 
     def to_env(self, a: np.ndarray, rng: np.random.Generator | None = None) -> Any:
-        """Environment action(s) for normalised ``a`` of shape ``(dim,)`` or ``(B, dim)``; ``rng`` samples the
-        ``Discrete(2)`` mapping (training), without it the more probable action is taken (evaluation)."""
+        """Environment action(s) for normalised ``a`` of shape ``(dim,)`` or ``(B, dim)``.
+
+        ``rng`` samples the ``Discrete(2)`` mapping (training); without it the more probable action is
+        taken (evaluation).
+        """
         a = np.asarray(a)
         if self.kind == "box":
             env_a = self.low + (np.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)
-            return env_a.astype(self.space.dtype).reshape(a.shape[:-1] + self.space.shape)
+            return env_a.astype(self.space.dtype).reshape(a.shape[:-1] + self.box_shape)
         if self.n == 2:
             if rng is None:
                 out = (a[..., 0] >= 0).astype(np.int64) + self.start

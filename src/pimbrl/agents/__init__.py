@@ -6,7 +6,7 @@ from .base import Agent, AgentConfig
 from .sac import SAC
 from .td3 import DDPG, TD3
 
-__all__ = ["Agent", "AgentConfig", "AGENTS", "DDPG", "SAC", "TD3", "make_agent"]
+__all__ = ["AGENTS", "DDPG", "SAC", "TD3", "Agent", "AgentConfig", "make_agent"]
 
 AGENTS: dict[str, type[Agent]] = {"td3": TD3, "ddpg": DDPG, "sac": SAC}
 

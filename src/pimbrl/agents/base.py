@@ -14,6 +14,7 @@ from torch import nn
 
 from ..buffers import Batch
 from ..config import in_range, param, positive
+from .networks import CriticEnsemble
 
 __all__ = ["Agent", "AgentConfig", "frozen", "make_optimizer", "polyak_update", "target_copy"]
 
@@ -53,9 +54,12 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
         torch._foreach_lerp_(list(target), list(source), 1.0 - polyak)
 
 
-class frozen:
-    """Context manager: parameters of a module do not accumulate gradients inside (e.g. the critic
-    during an actor update), so no time is spent computing gradients that would be discarded."""
+class frozen:  # noqa: N801 - used like a function, ``with frozen(critic):``, as contextlib.suppress is
+    """Context manager: parameters of a module do not accumulate gradients inside.
+
+    Used e.g. for the critic during an actor update, so no time is spent computing gradients that would
+    be discarded.
+    """
 
     def __init__(self, module: nn.Module) -> None:
         self.params = [p for p in module.parameters() if p.requires_grad]
@@ -87,6 +91,9 @@ class Agent(ABC):
     """
 
     name: str = "agent"
+    # built by the subclasses' _build; the shared critic step uses them
+    critic: CriticEnsemble
+    critic_opt: torch.optim.Optimizer
 
     def __init__(self, obs_dim: int, act_dim: int, config: AgentConfig, seed: int) -> None:
         self.obs_dim = int(obs_dim)
@@ -140,6 +147,7 @@ class Agent(ABC):
         )
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state_dict` saved; the checkpoint must be of the same agent type."""
         if state["name"] != self.name:
             raise ValueError(f"checkpoint holds a {state['name']} agent, not {self.name}")
         self.n_updates = int(state["n_updates"])
@@ -150,8 +158,10 @@ class Agent(ABC):
             modules[k].load_state_dict(s)
 
     def _critic_step(self, batch: Batch, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One step of ``self.critic`` (an ensemble) towards ``target``: the loss is the sum over the members
-        of their mean squared TD errors. Returns ``(loss, q)``, detached."""
+        """One step of ``self.critic`` (an ensemble) towards ``target``; returns ``(loss, q)``, detached.
+
+        The loss is the sum over the members of their mean squared TD errors.
+        """
         q = self.critic(batch.obs, batch.action)
         loss = (q - target).pow(2).mean(dim=1).sum()
         self._check_finite(loss, "the critic loss")

@@ -7,13 +7,14 @@ kernel launch per layer instead of two.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 
 import torch
 from torch import nn
 
-__all__ = ["mlp", "DeterministicActor", "GaussianActor", "CriticEnsemble"]
+__all__ = ["CriticEnsemble", "DeterministicActor", "GaussianActor", "mlp"]
 
 
 def mlp(
@@ -38,6 +39,7 @@ class DeterministicActor(nn.Module):
         self.net = mlp([obs_dim, *hidden, act_dim], output_activation=nn.Tanh)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Actions ``(B, act_dim)`` in ``[-1, 1]`` for observations ``(B, obs_dim)``."""
         return self.net(obs)
 
 
@@ -56,6 +58,7 @@ class GaussianActor(nn.Module):
     def forward(
         self, obs: torch.Tensor, deterministic: bool = False, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """A sampled (or, if ``deterministic``, the mean) squashed action and its log-probability ``(B,)``."""
         h = self.body(obs)
         mu = self.mu(h)
         if deterministic:
@@ -82,12 +85,13 @@ class CriticEnsemble(nn.Module):
         sizes = [obs_dim + act_dim, *hidden, 1]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
-        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+        for fan_in, fan_out in itertools.pairwise(sizes):
             bound = 1.0 / math.sqrt(fan_in)
             self.weights.append(nn.Parameter(torch.empty(n, fan_in, fan_out).uniform_(-bound, bound)))
             self.biases.append(nn.Parameter(torch.empty(n, 1, fan_out).uniform_(-bound, bound)))
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Q-values of every member, ``(n, B)``."""
         x = torch.cat([obs, action], dim=-1).unsqueeze(0).expand(self.n, -1, -1)
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):

@@ -44,9 +44,11 @@ class SAC(Agent):
 
     @property
     def alpha(self) -> torch.Tensor:
+        """The entropy temperature ``exp(log_alpha)`` (detached)."""
         return self.log_alpha.detach().exp()
 
     def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        """The squashed mean action (no sampling)."""
         return self.actor(obs, deterministic=True)[0]
 
     @torch.no_grad()
@@ -62,6 +64,7 @@ class SAC(Agent):
         return a.numpy().astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One critic step, one actor step, one temperature step (if tuned), then a target update."""
         cfg = self.config
         alpha = self.alpha
         with torch.no_grad():

@@ -18,7 +18,7 @@ from ..buffers import Batch
 from .base import Agent, frozen, make_optimizer, polyak_update, target_copy
 from .networks import CriticEnsemble, DeterministicActor
 
-__all__ = ["TD3", "DDPG"]
+__all__ = ["DDPG", "TD3"]
 
 
 class TD3(Agent):
@@ -55,6 +55,7 @@ class TD3(Agent):
         }
 
     def policy(self, obs: torch.Tensor) -> torch.Tensor:
+        """The actor's action (no exploration noise)."""
         return self.actor(obs)
 
     @torch.no_grad()
@@ -68,6 +69,7 @@ class TD3(Agent):
         return a.astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One critic step; every ``policy_delay`` updates (every update for DDPG) also an actor step and target updates."""
         cfg = self.config
         with torch.no_grad():
             next_a = self.actor_targ(batch.next_obs)
@@ -91,8 +93,10 @@ class TD3(Agent):
 
 
 class DDPG(TD3):
-    """Deep deterministic policy gradient (Lillicrap et al. 2016): one critic, actor and targets updated
-    every step, no target-policy smoothing."""
+    """Deep deterministic policy gradient (Lillicrap et al. 2016).
+
+    One critic, actor and targets updated every step, no target-policy smoothing.
+    """
 
     name = "ddpg"
     n_critics = 1

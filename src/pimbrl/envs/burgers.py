@@ -11,7 +11,7 @@ from ..physics import Burgers
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .task import Task
 
-__all__ = ["BurgersTask", "BurgersEnv", "BurgersVectorEnv"]
+__all__ = ["BurgersEnv", "BurgersTask", "BurgersVectorEnv"]
 
 
 class BurgersTask(Task):
@@ -23,6 +23,8 @@ class BurgersTask(Task):
     """
 
     max_episode_steps = 60
+    physics: Burgers
+    action_space: spaces.Box
 
     def __init__(self, divergence_penalty: float = -100.0) -> None:
         self.physics = Burgers(episode_steps=self.max_episode_steps)
@@ -40,12 +42,15 @@ class BurgersTask(Task):
         return 0.2 * c * np.exp(-25.0 * (x - 0.5) ** 2) + 0.2 * (1.0 - c) * np.sin(4 * np.pi * x) + 0.2
 
     def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """Initial fields of :meth:`initial_state` with ``c ~ U[0, 1)``."""
         return self.initial_state(rng.uniform(0.0, 1.0, size=n))
 
     def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """``u - ref_k`` as float32."""
         return self.physics.observe(u, k).astype(np.float32)
 
     def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        """Check the actions' shape and finiteness and clip them to the actuator bounds."""
         return self._box_action(actions, batch, self.action_space, self.physics.action_low, self.physics.action_high)
 
 
@@ -92,11 +97,11 @@ _DOC = """Viscous Burgers reference tracking with two actuators (Liu & Wang 2021
     """
 
 
-class BurgersEnv(PhysicsEnv):
+class BurgersEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = BurgersTask
 
 
-class BurgersVectorEnv(PhysicsVectorEnv):
+class BurgersVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC + "\n    Native vector version: all sub-environments advance in one compiled call.\n"
     task_class = BurgersTask

@@ -11,13 +11,14 @@ from ..physics import CartPole
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .task import Task
 
-__all__ = ["CartPoleTask", "CartPoleEnv", "CartPoleVectorEnv"]
+__all__ = ["CartPoleEnv", "CartPoleTask", "CartPoleVectorEnv"]
 
 
 class CartPoleTask(Task):
     """Cart-Pole task: Discrete(2) actions (0: push left, 1: push right), 200 control steps."""
 
     max_episode_steps = 200
+    physics: CartPole
 
     def __init__(self) -> None:
         self.physics = CartPole()
@@ -27,12 +28,15 @@ class CartPoleTask(Task):
         self.action_space = spaces.Discrete(2)
 
     def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """All four state variables uniform in ``[-0.05, 0.05]``, as in Gymnasium."""
         return rng.uniform(low=-0.05, high=0.05, size=(n, 4))
 
     def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """The state itself, as float32."""
         return u.astype(np.float32)
 
     def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        """Check that the actions are 0 or 1 and map them to forces ``-force_mag`` / ``+force_mag``."""
         arr = np.asarray(actions)
         if arr.ndim == 0 and batch == 1:
             arr = arr[None]
@@ -86,11 +90,11 @@ _DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPo
     """
 
 
-class CartPoleEnv(PhysicsEnv):
+class CartPoleEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = CartPoleTask
 
 
-class CartPoleVectorEnv(PhysicsVectorEnv):
+class CartPoleVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC + "\n    Native vector version: all sub-environments advance in one NumPy call.\n"
     task_class = CartPoleTask

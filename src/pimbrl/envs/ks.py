@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from gymnasium import spaces
 
 from ..physics import KuramotoSivashinsky
 from .base import PhysicsEnv, PhysicsVectorEnv
-from .ks_states import KSPoolConfig, ks_initial_state_pool
+from .ks_states import KSPoolConfig, Split, ks_initial_state_pool
 from .task import Task
 
 __all__ = ["KSTask", "KuramotoSivashinskyEnv", "KuramotoSivashinskyVectorEnv"]
@@ -30,6 +30,8 @@ class KSTask(Task):
     """
 
     max_episode_steps = 400
+    physics: KuramotoSivashinsky
+    action_space: spaces.Box
 
     def __init__(
         self,
@@ -63,16 +65,21 @@ class KSTask(Task):
     def pool(self) -> np.ndarray:
         """The initial-state pool (generated and cached on first use)."""
         if self._pool is None:
-            self._pool = ks_initial_state_pool(self._pool_split, self.pool_config).states  # type: ignore[arg-type]
+            # a pool is given as an array exactly when the split is "custom": here it is "train" or "test"
+            split = cast(Split, self._pool_split)
+            self._pool = ks_initial_state_pool(split, self.pool_config).states
         return self._pool
 
     def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``n`` states drawn with replacement from the initial-state pool."""
         return self.pool[rng.integers(len(self.pool), size=n)].copy()
 
     def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """The field itself, as float32."""
         return u.astype(np.float32)
 
     def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        """Check the actions' shape and finiteness and clip them to the actuator bounds."""
         return self._box_action(actions, batch, self.action_space, self.physics.action_low, self.physics.action_high)
 
 
@@ -126,11 +133,11 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
     """
 
 
-class KuramotoSivashinskyEnv(PhysicsEnv):
+class KuramotoSivashinskyEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = KSTask
 
 
-class KuramotoSivashinskyVectorEnv(PhysicsVectorEnv):
+class KuramotoSivashinskyVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC + "\n    Native vector version: all sub-environments advance in one compiled call.\n"
     task_class = KSTask

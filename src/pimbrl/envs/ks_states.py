@@ -36,7 +36,7 @@ import numpy as np
 from ..physics import KuramotoSivashinsky
 from ..physics.kernels import cache_dir
 
-__all__ = ["KSPoolConfig", "KSPool", "ks_initial_state_pool"]
+__all__ = ["KSPool", "KSPoolConfig", "ks_initial_state_pool"]
 
 _POOL_VERSION = 1
 Split = Literal["train", "test"]
@@ -91,7 +91,9 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
     n_target = cfg.n_train if split == "train" else cfg.n_test
     stream = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(0 if split == "train" else 1,)))
     zeros = np.zeros((cfg.batch, 4))
-    states, terms, runs = [], [], []
+    states: list[np.ndarray] = []
+    terms: list[np.ndarray] = []
+    runs: list[np.ndarray] = []
     run0 = 0
     while sum(len(s) for s in states) < n_target:
         u = _random_smooth_fields(stream, cfg.batch, physics)

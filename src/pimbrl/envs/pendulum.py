@@ -11,7 +11,7 @@ from ..physics import Pendulum, wrap_angle
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .task import Task
 
-__all__ = ["PendulumTask", "PendulumEnv", "PendulumVectorEnv"]
+__all__ = ["PendulumEnv", "PendulumTask", "PendulumVectorEnv"]
 
 
 class PendulumTask(Task):
@@ -27,6 +27,8 @@ class PendulumTask(Task):
     """
 
     max_episode_steps = 200
+    physics: Pendulum
+    action_space: spaces.Box
 
     def __init__(self, observation: Literal["theta", "cos_sin"] = "cos_sin") -> None:
         if observation not in ("theta", "cos_sin"):
@@ -34,26 +36,26 @@ class PendulumTask(Task):
         self.physics = Pendulum()
         self.observation_mode = observation
         s = np.float32(self.physics.max_speed)
-        if observation == "theta":
-            high = np.array([np.pi, s], dtype=np.float32)
-        else:
-            high = np.array([1.0, 1.0, s], dtype=np.float32)
+        high = np.array([np.pi, s], dtype=np.float32) if observation == "theta" else np.array([1.0, 1.0, s], dtype=np.float32)
         self.observation_space = spaces.Box(-high, high, dtype=np.float32)
         self.action_space = spaces.Box(
             self.physics.action_low.astype(np.float32), self.physics.action_high.astype(np.float32), dtype=np.float32
         )
 
     def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``theta ~ U[-pi, pi]`` and ``theta_dot ~ U[-1, 1]``, as in Gymnasium."""
         high = np.array([np.pi, 1.0])
         return rng.uniform(low=-high, high=high, size=(n, 2))
 
     def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """``(cos theta, sin theta, theta_dot)`` or ``(wrapped theta, theta_dot)``, as float32."""
         theta, theta_dot = u[:, 0], u[:, 1]
         if self.observation_mode == "theta":
             return np.stack([wrap_angle(theta), theta_dot], -1).astype(np.float32)
         return np.stack([np.cos(theta), np.sin(theta), theta_dot], -1).astype(np.float32)
 
     def physical_action(self, actions: Any, batch: int) -> np.ndarray:
+        """Check the torques' shape and finiteness and clip them to ``[-2, 2]``."""
         return self._box_action(actions, batch, self.action_space, self.physics.action_low, self.physics.action_high)
 
 
@@ -96,11 +98,11 @@ _DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
     """
 
 
-class PendulumEnv(PhysicsEnv):
+class PendulumEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = PendulumTask
 
 
-class PendulumVectorEnv(PhysicsVectorEnv):
+class PendulumVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC + "\n    Native vector version: all sub-environments advance in one NumPy call.\n"
     task_class = PendulumTask

@@ -1,5 +1,7 @@
-"""Transition models: an MLP for the ODE systems, a convolutional encoder + LSTM + MLP decoder emitting
-intermediate states for the PDE systems (the paper's architecture, Fig. 3).
+"""Transition models of the physical systems.
+
+An MLP serves the ODE systems; for the PDE systems a convolutional encoder + LSTM + MLP decoder emits
+intermediate states (the paper's architecture, Fig. 3).
 
 A model maps a physical state ``u_t`` ``(B, state_dim)`` and a physical action ``a_t`` ``(B, action_dim)`` to
 ``N`` states at times ``t + i/N`` (``(B, N, state_dim)``); the last one is the prediction of ``u_{t+1}``.
@@ -18,13 +20,20 @@ from torch import nn
 from ..physics import Physics
 from ..physics.pde import SemilinearPDE
 
-__all__ = ["TransitionModel", "MLPModel", "ConvLSTMModel", "make_model"]
+__all__ = ["ConvLSTMModel", "MLPModel", "TransitionModel", "make_model"]
 
 
 class TransitionModel(nn.Module):
     """Base class: action scaling, normalisation buffers and the output convention."""
 
     n_intermediate: int = 1
+    # buffers registered in __init__ (declared here for the type checker)
+    action_low: torch.Tensor
+    action_high: torch.Tensor
+    state_mean: torch.Tensor
+    state_std: torch.Tensor
+    delta_std: torch.Tensor
+    fitted: torch.Tensor
 
     def __init__(self, physics: Physics, per_feature: bool) -> None:
         super().__init__()
@@ -39,6 +48,7 @@ class TransitionModel(nn.Module):
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
 
     def scale_action(self, a: torch.Tensor) -> torch.Tensor:
+        """Map physical actions from ``[action_low, action_high]`` to ``[-1, 1]``."""
         return 2.0 * (a - self.action_low) / (self.action_high - self.action_low) - 1.0
 
     @torch.no_grad()
@@ -60,9 +70,11 @@ class TransitionModel(nn.Module):
         self.fitted.fill_(True)
 
     def normalize(self, u: torch.Tensor) -> torch.Tensor:
+        """Standardise states with the fitted mean and standard deviation."""
         return (u - self.state_mean) / self.state_std
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        """Predicted states ``(B, n_intermediate, state_dim)`` from ``u`` ``(B, state_dim)`` and ``a`` ``(B, action_dim)``."""
         raise NotImplementedError
 
     def predict_next(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -89,11 +101,9 @@ class MLPModel(TransitionModel):
         self.net = nn.Sequential(*layers)
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The next state as ``(B, 1, state_dim)``: a single "intermediate" state."""
         out = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1))
-        if self.predict_increment:
-            nxt = u + out * self.delta_std
-        else:
-            nxt = out * self.state_std + self.state_mean
+        nxt = u + out * self.delta_std if self.predict_increment else out * self.state_std + self.state_mean
         return self.physics.canonical(nxt)[:, None, :]
 
 
@@ -158,6 +168,7 @@ class ConvLSTMModel(TransitionModel):
         return d * self.state_std + self.state_mean
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The ``n_intermediate`` predicted fields ``(B, N, n)``; the last is ``u_{t+1}``."""
         return self._decode(u, self._latent_path(u, a))
 
     def predict_next(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:

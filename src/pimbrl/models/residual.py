@@ -26,7 +26,7 @@ from typing import Literal
 import torch
 
 from ..physics import Physics
-from ..physics.pde import SemilinearPDE
+from ..physics.pde import ETDRK4, SemilinearPDE
 
 __all__ = ["PhysicsResidual", "Scheme"]
 
@@ -48,8 +48,8 @@ class PhysicsResidual:
         self.physics = physics
         self.n = int(n_intermediate)
         self.h = physics.control_dt / self.n
-        pde = isinstance(physics, SemilinearPDE)
-        if not pde:
+        pde = physics if isinstance(physics, SemilinearPDE) else None
+        if pde is None:
             if self.n != physics.substeps:
                 raise ValueError(
                     f"{physics.name}: an ODE model emits one state per solver step; need n_intermediate={physics.substeps}"
@@ -63,14 +63,18 @@ class PhysicsResidual:
                 f"per control step, got {self.n}"
             )
         self.scheme: Scheme = scheme
-        self._etd = physics.etdrk4(self.n) if (pde and scheme == "etd") else None
+        # the PDE (typed as such) and its exponential integrator, for the "etd" scheme
+        self._etd: tuple[SemilinearPDE, ETDRK4] | None = (
+            (pde, pde.etdrk4(self.n)) if (pde is not None and scheme == "etd") else None
+        )
 
     def coarse_step(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``."""
-        phys = self.physics
         if self._etd is not None:
-            f = phys.forcing(a)  # type: ignore[attr-defined]
-            return self._etd.step(u, lambda v: phys.nonlinear(v, f))  # type: ignore[attr-defined]
+            pde, etd = self._etd
+            f = pde.forcing(a)
+            return etd.step(u, lambda v: pde.nonlinear(v, f))
+        phys = self.physics
         return phys.step(u, a, substeps=phys.substeps // self.n)
 
     def defects(self, u0: torch.Tensor, path: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -89,7 +93,8 @@ class PhysicsResidual:
 
     def rollout(self, u0: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """The coarse scheme's own path ``(B, N, state_dim)`` from ``u0``: the states on which its defects vanish."""
-        states, u = [], u0
+        states: list[torch.Tensor] = []
+        u = u0
         for _ in range(self.n):
             u = self.coarse_step(u, a)
             states.append(u)

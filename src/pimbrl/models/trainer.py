@@ -36,10 +36,12 @@ class TransitionData:
         return self.state.shape[0]
 
     def take(self, idx: torch.Tensor) -> TransitionData:
+        """The transitions at indices ``idx`` (a 1-D index tensor), in that order."""
         nxt = None if self.next_state is None else self.next_state.index_select(0, idx)
         return TransitionData(self.state.index_select(0, idx), self.action.index_select(0, idx), nxt)
 
     def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
+        """``batch`` transitions drawn uniformly with replacement."""
         return self.take(torch.from_numpy(rng.integers(0, len(self), size=batch)))
 
 
@@ -48,7 +50,8 @@ class TransitionSource(Protocol):
 
     def __len__(self) -> int: ...
 
-    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData: ...
+    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
+        """``batch`` transitions drawn at random with ``rng``."""
 
 
 class ModelTrainer:
@@ -156,6 +159,7 @@ class ModelTrainer:
             idx = torch.arange(i, min(i + batch_size, len(data)))
             chunk = data.take(idx)
             pred = self.model.predict_next(chunk.state, chunk.action)
+            assert chunk.next_state is not None  # take() keeps the labels that data has
             out.append(self.model.physics.state_difference(pred, chunk.next_state).pow(2).mean(dim=-1))
         return torch.cat(out).numpy() if out else np.zeros(0)
 
@@ -164,9 +168,11 @@ class ModelTrainer:
         return float(self.per_transition_mse(data).mean()) if len(data) else float("inf")
 
     def state_dict(self) -> dict:
+        """Model and optimiser state and the step count, for checkpoints."""
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "steps": self.steps}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore what :meth:`state_dict` saved."""
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.steps = int(state["steps"])

@@ -7,4 +7,4 @@ from .ks import KuramotoSivashinsky
 from .pendulum import Pendulum, wrap_angle
 from .stencil import Stencil
 
-__all__ = ["Physics", "Burgers", "CartPole", "KuramotoSivashinsky", "Pendulum", "Stencil", "wrap_angle"]
+__all__ = ["Burgers", "CartPole", "KuramotoSivashinsky", "Pendulum", "Physics", "Stencil", "wrap_angle"]

@@ -35,11 +35,12 @@ def superpose(a: Array, shapes: np.ndarray) -> Array:
     Written as an explicit sum rather than a matmul so that its rounding does not depend on the batch
     shape: a batched step then equals the stacked single steps bit for bit.
     """
+    g: np.ndarray | torch.Tensor = shapes
     if isinstance(a, torch.Tensor):
-        shapes = torch.as_tensor(shapes, dtype=a.dtype, device=a.device)
-    f = a[..., 0:1] * shapes[0]
-    for i in range(1, shapes.shape[0]):
-        f = f + a[..., i : i + 1] * shapes[i]
+        g = torch.as_tensor(shapes, dtype=a.dtype, device=a.device)
+    f = a[..., 0:1] * g[0]
+    for i in range(1, g.shape[0]):
+        f = f + a[..., i : i + 1] * g[i]
     return f
 
 
@@ -124,8 +125,9 @@ class Physics(ABC):
 
     def terminated(self, u: Array) -> Array:
         """True where a state ends the episode by the task's own rule (not by blow-up)."""
-        xp = xp_of(u)
-        return xp.zeros(u.shape[:-1], dtype=bool) if xp is np else torch.zeros(u.shape[:-1], dtype=torch.bool, device=u.device)
+        if isinstance(u, torch.Tensor):
+            return torch.zeros(u.shape[:-1], dtype=torch.bool, device=u.device)
+        return np.zeros(u.shape[:-1], dtype=bool)
 
     def diverged(self, u: Array) -> Array:
         """True where a state is non-finite or beyond :attr:`divergence_bound`."""
@@ -140,11 +142,11 @@ class Physics(ABC):
     # ------------------------------------------------------------------ the fast simulator
     @abstractmethod
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One control step for a batch: ``u`` of shape ``(B, state_dim)`` and ``a`` of shape
-        ``(B, action_dim)``, float64, ``k`` the control-step indices ``(B,)``.
+        """One control step for a batch of states, with its rewards.
 
-        Returns ``(u_next, reward)``; computes in float64 and equals :meth:`step` / :meth:`reward` to
-        round-off. Does not check for blow-up (the environments do).
+        ``u`` has shape ``(B, state_dim)`` and ``a`` shape ``(B, action_dim)``, both float64; ``k`` holds
+        the control-step indices ``(B,)``. Returns ``(u_next, reward)``; computes in float64 and equals
+        :meth:`step` / :meth:`reward` to round-off. Does not check for blow-up (the environments do).
         """
 
     def __repr__(self) -> str:

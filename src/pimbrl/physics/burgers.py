@@ -9,17 +9,17 @@ discretised as the authors' code computes it (SPEC section 1.2): 4th-order centr
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import overload
 
 import numpy as np
 import torch
 
 from .base import Array
-from .kernels import PDEKernelSpec
+from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil
 
-__all__ = ["Burgers", "BURGERS_D2", "BURGERS_UPWIND"]
+__all__ = ["BURGERS_D2", "BURGERS_UPWIND", "Burgers"]
 
 #: 4th-order central second difference (raw: divide by dx^2).
 BURGERS_D2 = Stencil.centered((-1 / 12, 4 / 3, -5 / 2, 4 / 3, -1 / 12), "D2")
@@ -84,7 +84,7 @@ class Burgers(SemilinearPDE):
         #: coefficient of ``Db(u^2)``: ``-(u^2/2)_xi = -Db(u^2) / (2 dx)``
         self.nonlinear_coef = -1.0 / (2.0 * self.dx)
         self.method = "euler"
-        self._kernel: Callable | None = None
+        self._kernel: PDEKernel | None = None
 
     # ------------------------------------------------------------------ equation
     def upwind(self, u: Array) -> Array:
@@ -92,17 +92,20 @@ class Burgers(SemilinearPDE):
         return BURGERS_UPWIND.apply(u * u)
 
     # ------------------------------------------------------------------ task
-    def reference(self, k: Array | int) -> Array | float:
+    @overload
+    def reference(self, k: int) -> float: ...
+    @overload
+    def reference(self, k: Array) -> Array: ...
+    def reference(self, k: np.ndarray | torch.Tensor | int) -> np.ndarray | torch.Tensor | float:
         """Reference value at control step ``k``: ``0.5 + 0.05 sin(2 pi k / 60)``."""
-        phase = 2 * np.pi * (k / self.episode_steps)
         if isinstance(k, torch.Tensor):
-            return self.ref_mean + self.ref_amplitude * torch.sin(phase)
-        return self.ref_mean + self.ref_amplitude * np.sin(phase)
+            return self.ref_mean + self.ref_amplitude * torch.sin(2 * np.pi * (k / self.episode_steps))
+        return self.ref_mean + self.ref_amplitude * np.sin(2 * np.pi * (k / self.episode_steps))
 
     def observe(self, u: Array, k: Array | int) -> Array:
         """Observation ``u - ref_k`` (``k`` broadcast over the state axis)."""
         ref = self.reference(k)
-        if getattr(ref, "ndim", 0) > 0:
+        if not isinstance(ref, float) and ref.ndim > 0:
             ref = ref[..., None]
         return u - ref
 
@@ -123,6 +126,7 @@ class Burgers(SemilinearPDE):
         )
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One control step of the compiled kernel, then the tracking reward of the reached state."""
         u = np.asarray(u, dtype=np.float64)
         a = np.asarray(a, dtype=np.float64)
         u_next, _, _ = self.run_kernel(u, a, False, _NO_WEIGHTS)

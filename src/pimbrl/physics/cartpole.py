@@ -53,6 +53,7 @@ class CartPole(Physics):
         self.action_high = np.array([self.force_mag])
 
     def rhs(self, u: Array, a: Array) -> Array:
+        """Gymnasium's cart-pole equations of motion: ``(x_dot, x_acc, theta_dot, theta_acc)``."""
         xp = xp_of(u)
         x_dot, theta, theta_dot = u[..., 1], u[..., 2], u[..., 3]
         force = a[..., 0]
@@ -66,6 +67,7 @@ class CartPole(Physics):
         return xp.stack([x_dot, xacc, theta_dot, thetaacc], -1)
 
     def substep(self, u: Array, a: Array) -> Array:
+        """One explicit Euler step of length :attr:`dt` (Gymnasium's ``euler`` integrator)."""
         return u + self.dt * self.rhs(u, a)
 
     def reward(self, u: Array, a: Array, u_next: Array, k: Array | int, path: Array | None = None) -> Array:
@@ -83,6 +85,7 @@ class CartPole(Physics):
         )
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One Euler step and the constant reward for a batch of states."""
         u = np.asarray(u, dtype=np.float64)
         a = np.asarray(a, dtype=np.float64)
         u_next = self.substep(u, a)

@@ -40,15 +40,17 @@ from numba import boolean, float64, int64
 
 from .stencil import Stencil
 
-__all__ = ["PDEKernelSpec", "build_pde_kernel", "cache_dir", "N_REWARD_TERMS"]
+__all__ = ["N_REWARD_TERMS", "PDEKernel", "PDEKernelSpec", "build_pde_kernel", "cache_dir"]
 
 N_REWARD_TERMS = 4
 _GENERATOR_VERSION = "4"
 
 
 def cache_dir() -> Path:
-    """Directory for pimbrl's caches: ``$PIMBRL_CACHE_DIR``, else ``$XDG_CACHE_HOME/pimbrl``, else
-    ``~/.cache/pimbrl``."""
+    """Directory for pimbrl's caches.
+
+    ``$PIMBRL_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/pimbrl``, else ``~/.cache/pimbrl``.
+    """
     env = os.environ.get("PIMBRL_CACHE_DIR")
     if env:
         return Path(env)
@@ -70,6 +72,7 @@ class PDEKernelSpec:
 
     @property
     def halo(self) -> int:
+        """Ghost points needed on each side by the widest stencil of the kernel."""
         stencils = [self.linear, self.upwind_backward, self.upwind_forward, self.integrand_a, self.integrand_c]
         return max(s.halo for s in stencils if s is not None)
 
@@ -218,10 +221,13 @@ def generate_source(spec: PDEKernelSpec) -> str:
     )
 
 
-_LOADED: dict[str, Callable] = {}
+#: A compiled kernel: ``advance(u0, actions, shapes, dt, nsub, accumulate, weights) -> (u_next, terms, reward)``.
+PDEKernel = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+_LOADED: dict[str, PDEKernel] = {}
 
 
-def build_pde_kernel(spec: PDEKernelSpec) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+def build_pde_kernel(spec: PDEKernelSpec) -> PDEKernel:
     """Compile (or load from cache) the kernel for ``spec``.
 
     The returned function has the signature ``advance(u0, actions, shapes, dt, nsub, accumulate, weights)``
@@ -237,7 +243,8 @@ def build_pde_kernel(spec: PDEKernelSpec) -> Callable[..., tuple[np.ndarray, np.
     path = _write_source(f"pimbrl_pde_{key}.py", source)
     module_name = f"_pimbrl_generated_{key}"
     module_spec = importlib.util.spec_from_file_location(module_name, path)
-    assert module_spec is not None and module_spec.loader is not None
+    assert module_spec is not None
+    assert module_spec.loader is not None
     module = importlib.util.module_from_spec(module_spec)
     sys.modules[module_name] = module
     module_spec.loader.exec_module(module)

@@ -12,17 +12,16 @@ with 6th-order central D2, D4, a sign-switched 4th-order one-sided upwind differ
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
 
 from .base import Array, xp_of
-from .kernels import PDEKernelSpec
+from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil, apply_upwind
 
-__all__ = ["KuramotoSivashinsky", "KS_D1", "KS_D2", "KS_D4", "KS_UPWIND_BACKWARD", "KS_UPWIND_FORWARD"]
+__all__ = ["KS_D1", "KS_D2", "KS_D4", "KS_UPWIND_BACKWARD", "KS_UPWIND_FORWARD", "KuramotoSivashinsky"]
 
 #: 6th-order central second difference (raw: divide by dx^2).
 KS_D2 = Stencil.centered((1 / 90, -3 / 20, 3 / 2, -49 / 18, 3 / 2, -3 / 20, 1 / 90), "D2")
@@ -108,7 +107,7 @@ class KuramotoSivashinsky(SemilinearPDE):
         else:
             self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
         self.method = "rk4"
-        self._kernel: Callable | None = None  # compiled on first use
+        self._kernel: PDEKernel | None = None  # compiled on first use
 
     # ------------------------------------------------------------------ equation
     def upwind(self, u: Array) -> Array:
@@ -150,10 +149,13 @@ class KuramotoSivashinsky(SemilinearPDE):
         )
 
     def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Like :meth:`advance` but also returns the step-averaged reward integrands ``(B, 4)``:
-        ``(u_next, terms, reward)``."""
+        """Like :meth:`advance`, but also returns the step-averaged reward integrands ``(B, 4)``.
+
+        Returns ``(u_next, terms, reward)``.
+        """
         return self.run_kernel(u, a, True, self.reward_weights)
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One control step of the compiled kernel with the step-averaged reward."""
         u_next, _, reward = self.advance_terms(u, a)
         return u_next, reward

@@ -25,16 +25,19 @@ import numpy as np
 import torch
 
 from .base import Array, Physics, superpose
-from .kernels import PDEKernelSpec, build_pde_kernel
+from .kernels import PDEKernel, PDEKernelSpec, build_pde_kernel
 from .stencil import Stencil
 
-__all__ = ["SemilinearPDE", "ETDRK4"]
+__all__ = ["ETDRK4", "SemilinearPDE"]
 
 
 class SemilinearPDE(Physics):
-    """Base class of the periodic PDE systems. Subclasses set, in ``__init__``: :attr:`n`, :attr:`x`,
+    """Base class of the periodic PDE systems.
+
+    Subclasses set, in ``__init__``: :attr:`n`, :attr:`x`,
     :attr:`linear`, :attr:`nonlinear_coef`, :attr:`actuator_shapes`, :attr:`method` and the
-    :class:`Physics` attributes, and implement :meth:`upwind` and :meth:`kernel_spec`."""
+    :class:`Physics` attributes, and implement :meth:`upwind` and :meth:`kernel_spec`.
+    """
 
     n: int
     x: np.ndarray
@@ -42,7 +45,7 @@ class SemilinearPDE(Physics):
     nonlinear_coef: float
     actuator_shapes: np.ndarray
     method: Literal["euler", "rk4"]
-    _kernel: Callable | None = None
+    _kernel: PDEKernel | None = None
 
     # ------------------------------------------------------------------ equation
     def forcing(self, a: Array) -> Array:
@@ -62,6 +65,7 @@ class SemilinearPDE(Physics):
         return self.linear.apply(u) + self.nonlinear(u, f)
 
     def rhs(self, u: Array, a: Array) -> Array:
+        """``L u + N(u) + f`` with the forcing built from the actions ``a``."""
         return self.rhs_forced(u, self.forcing(a))
 
     def substep_forced(self, u: Array, f: Array) -> Array:
@@ -76,9 +80,11 @@ class SemilinearPDE(Physics):
         return u + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
     def substep(self, u: Array, a: Array) -> Array:
+        """One solver step with the forcing of ``a`` held fixed."""
         return self.substep_forced(u, self.forcing(a))
 
     def step(self, u: Array, a: Array, substeps: int | None = None) -> Array:
+        """Like :meth:`Physics.step`, but builds the forcing field once for all the solver steps."""
         f = self.forcing(a)
         for _ in range(self.substeps if substeps is None else substeps):
             u = self.substep_forced(u, f)

@@ -54,11 +54,13 @@ class Pendulum(Physics):
         self._torque_coef = 3.0 / (self.m * self.l**2)
 
     def rhs(self, u: Array, a: Array) -> Array:
+        """``(theta_dot, 3 g / (2 l) sin(theta) + 3 / (m l^2) T)``, as in Gymnasium's pendulum."""
         xp = xp_of(u)
         theta, theta_dot = u[..., 0], u[..., 1]
         return xp.stack([theta_dot, self._gravity_coef * xp.sin(theta) + self._torque_coef * a[..., 0]], -1)
 
     def substep(self, u: Array, a: Array) -> Array:
+        """Gymnasium's semi-implicit Euler step: clip the new angular speed, then move the angle with it."""
         xp = xp_of(u)
         theta, theta_dot = u[..., 0], u[..., 1]
         acc = self.rhs(u, a)[..., 1]
@@ -83,6 +85,7 @@ class Pendulum(Physics):
         return -(wrap_angle(theta) ** 2 + 0.1 * theta_dot**2 + 0.001 * (torque**2))
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One step and the reward of the pre-step state for a batch of states."""
         u = np.asarray(u, dtype=np.float64)
         a = np.asarray(a, dtype=np.float64)
         u_next = self.substep(u, a)
