@@ -23,6 +23,7 @@ import _common  # noqa: F401  (pins threads first)
 
 from pimbrl.experiments.compare import RunSpec, run_all
 from pimbrl.training import RunDirectory
+from pimbrl.training.cli_args import config_from_argv
 
 
 def main() -> None:
@@ -38,7 +39,8 @@ def main() -> None:
     out = Path(args.out_dir)
     seeds = [int(s) for s in args.seeds.split(",")]
     specs = [
-        RunSpec("mfrl", seed, out / f"seed{seed}", (args.env, "--seed", str(seed), "--threads", "1", *extra)) for seed in seeds
+        RunSpec("mfrl", seed, out / f"seed{seed}", config_from_argv([args.env, "--seed", str(seed), "--threads", "1", *extra]))
+        for seed in seeds
     ]
     failed = run_all(specs, jobs=args.jobs)  # finished runs are skipped, interrupted ones resumed
     rows = []

@@ -121,7 +121,6 @@ def test_rollout_figure_needs_a_model(tiny_runs, tmp_path, capsys) -> None:
 def test_shipped_sweep_files_plan_valid_trials(tmp_path) -> None:
     from pathlib import Path
 
-    from pimbrl.cli import build_train_config
     from pimbrl.experiments.sweep import plan_trials
 
     configs = sorted((Path(__file__).parent.parent / "configs").glob("*.json"))
@@ -130,7 +129,7 @@ def test_shipped_sweep_files_plan_valid_trials(tmp_path) -> None:
         trials = plan_trials(load_sweep(path), tmp_path)
         assert trials
         for trial in trials:
-            cfg = build_train_config(list(trial.argv))
+            cfg = trial.config
             assert cfg.method == trial.method and cfg.seed == trial.seed
             for key, value in trial.params:
                 section, _, name = key.rpartition(".")

@@ -47,57 +47,49 @@ def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
 
 
 def _train_config_from_args(args: argparse.Namespace):
-    from .agents import AgentConfig
     from .simulate import resolve_env_id
-    from .training import DynaConfig, TrainConfig, resolve_config
+    from .training.cli_args import overrides_from_namespace
+    from .training.config import load_config_file, resolve_config
 
-    env_id = resolve_env_id(args.env)
-    overrides = overrides_from_args(args, TrainConfig)
-    if args.steps is not None:
-        overrides["total_steps"] = args.steps
-    if args.env_kwargs_json:
-        try:
-            overrides["env_kwargs"] = json.loads(args.env_kwargs_json)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f'--env-kwargs must be a JSON object, e.g. \'{{"reward": "physical"}}\': {exc}') from None
-    return resolve_config(
-        env_id,
-        overrides,
-        overrides_from_args(args, AgentConfig, prefix="agent."),
-        overrides_from_args(args, DynaConfig, prefix="dyna."),
-    )
+    overrides = overrides_from_namespace(args)
+    if args.config is not None:  # a whole configuration: nothing else may change it
+        given = [_flag_of(k) for k in overrides] + ([f"the environment {args.env!r}"] if args.env is not None else [])
+        if given:
+            raise ValueError(
+                f"--config {args.config} is a whole configuration; it cannot be combined with {', '.join(given)} "
+                "(edit the file instead; only --run-dir, --quiet and --print-config go with --config)"
+            )
+        return load_config_file(args.config)
+    if args.env is None:
+        raise ValueError(
+            "`pimbrl train` needs an environment (ks, burgers, cartpole, pendulum, or a Gymnasium id) or --config FILE"
+        )
+    return resolve_config(resolve_env_id(args.env), overrides)
+
+
+def _flag_of(path: str) -> str:
+    head, _, name = path.rpartition(".")
+    return "--steps" if path == "total_steps" else f"--{head + '.' if head else ''}{name.replace('_', '-')}"
 
 
 def build_train_config(argv: list[str]):
-    """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run (for sweeps).
+    """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run (kept for
+    compatibility: :func:`pimbrl.training.cli_args.config_from_argv`)."""
+    from .training.cli_args import config_from_argv
 
-    Raises :class:`ConfigError` with the parser's message for arguments it cannot read.
-    """
-    import contextlib
-    import io
-
-    parser = build_parser()
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            args = parser.parse_args(["train", *argv])
-    except SystemExit:
-        lines = err.getvalue().strip().splitlines() or ["unreadable arguments"]
-        raise ConfigError(f"bad train arguments {' '.join(argv)!r}: {lines[-1]}") from None
-    return _train_config_from_args(args)
+    return config_from_argv(argv)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .training import create_run, train
+    from .training import run_training
 
     cfg = _train_config_from_args(args)
     if args.print_config:  # the resolved configuration (defaults, preset, overrides); nothing is trained
         print(json.dumps(to_dict(cfg), indent=2))
         return 0
     run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method, cfg.agent, cfg.seed)
-    run = create_run(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"run directory: {run_dir}", file=sys.stderr)
-    summary = train(run)
+    summary = run_training(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
     _print_summary(run_dir, summary)
     return 0
 
@@ -207,20 +199,22 @@ def _seed_list(text: str) -> list[int]:
 def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
     from .experiments.compare import compare
     from .simulate import resolve_env_id
+    from .training.cli_args import parse_train_args
 
     env_id = resolve_env_id(args.env)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    train_extra = list(extra)
-    if args.steps is not None:
-        train_extra += ["--steps", str(args.steps)]
-    if args.threshold is not None:
-        train_extra += ["--threshold", repr(args.threshold)]
+    overrides = parse_train_args(extra)  # typed once; each run gets those that apply to its method
+    for flag, key, value in (("--steps", "total_steps", args.steps), ("--threshold", "threshold", args.threshold)):
+        if value is not None:
+            if key in overrides:
+                raise ValueError(f"give {flag} once: as a compare option or after --, not both")
+            overrides[key] = value
     result = compare(
         env_id,
         methods,
         _seed_list(args.seeds),
         args.run_dir,
-        train_extra,
+        overrides,
         jobs=args.jobs,
         threshold=args.threshold,
         run=not args.no_run,
@@ -253,11 +247,9 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from .experiments.sweep import load_sweep, plan_trials, run_sweep
+    from .experiments.sweep import load_sweep, run_sweep
 
-    spec = load_sweep(args.config)
-    for trial in plan_trials(spec, args.run_dir):  # every trial's configuration is checked before anything runs
-        build_train_config(list(trial.argv))
+    spec = load_sweep(args.config)  # run_sweep resolves every trial's configuration before anything runs
     use_ray = False if args.no_ray else (True if args.address else None)
     result = run_sweep(
         spec, args.run_dir, use_ray=use_ray, address=args.address, num_cpus=args.cpus, log=lambda m: print(m, flush=True)
@@ -309,26 +301,32 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", help="PNG path (default: out/<env>_<policy>_seed<seed>.png)")
     sim.set_defaults(func=_cmd_simulate)
 
-    from .agents import AgentConfig
-    from .training import DynaConfig, TrainConfig
+    from .training.cli_args import add_train_flags
 
     tr = sub.add_parser(
         "train",
         help="train an agent (presets per environment; any field can be overridden)",
         description="Train an agent. Presets come from the paper per environment; every field of the "
-        "configuration can be overridden with the flags below.",
+        "configuration can be overridden with the flags below. A flag that does nothing for the chosen "
+        "method, agent or environment (e.g. --dyna.* with --method mfrl) is an error.",
     )
-    tr.add_argument("env", help="ks | burgers | cartpole | pendulum, a pimbrl id, or any Gymnasium id (e.g. Pendulum-v1)")
-    tr.add_argument("--steps", type=int, default=None, help="real environment steps (alias of --total-steps)")
-    tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
     tr.add_argument(
-        "--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make"
+        "env",
+        nargs="?",
+        default=None,
+        help="ks | burgers | cartpole | pendulum, a pimbrl id, or any Gymnasium id (e.g. Pendulum-v1)",
     )
+    tr.add_argument(
+        "--config",
+        default=None,
+        metavar="FILE",
+        help="train the whole configuration in this JSON file (as --print-config writes it) instead of a preset "
+        "with flags; no other configuration flags may be given with it",
+    )
+    tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     tr.add_argument("--print-config", action="store_true", help="print the resolved configuration as JSON and exit")
-    add_arguments(tr, TrainConfig, skip=("env", "env_kwargs", "agent_config", "dyna"))
-    add_arguments(tr, AgentConfig, prefix="agent.")
-    add_arguments(tr, DynaConfig, prefix="dyna.")
+    add_train_flags(tr)
     tr.set_defaults(func=_cmd_train)
 
     rs = sub.add_parser("resume", help="continue a run from its last checkpoint")
@@ -363,8 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
         "compare",
         help="run several methods x seeds on one environment (resumable) and write curves.png and summary.csv",
         description="Run every method and seed (finished runs are skipped, interrupted ones resumed), then "
-        "write DIR/curves.png, DIR/summary.csv and DIR/summary.json. Arguments after -- go to every "
-        "`pimbrl train`.",
+        "write DIR/curves.png, DIR/summary.csv and DIR/summary.json. Arguments after -- are `pimbrl train` "
+        "flags; each goes to the runs it applies to (e.g. --dyna.* to mbrl and pimbrl, not mfrl), and one "
+        "that applies to none of the compared methods is an error.",
     )
     cp.add_argument("env")
     cp.add_argument("--methods", default="mfrl,mbrl,pimbrl", help="comma-separated: mfrl, mbrl, pimbrl, mfrl-matched")

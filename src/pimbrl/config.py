@@ -19,7 +19,18 @@ from typing import TYPE_CHECKING, Any, TypeVar
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
-__all__ = ["ConfigError", "add_arguments", "from_dict", "overrides_from_args", "param", "replace_path", "to_dict", "validate"]
+__all__ = [
+    "ConfigError",
+    "add_arguments",
+    "field_type",
+    "from_dict",
+    "overrides_from_args",
+    "param",
+    "replace_path",
+    "to_dict",
+    "typed_value",
+    "validate",
+]
 
 #: a dataclass instance (typeshed's protocol: anything with ``__dataclass_fields__``)
 D = TypeVar("D", bound="DataclassInstance")
@@ -199,11 +210,92 @@ def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -
     return out
 
 
-def replace_path(cfg: D, path: str, value: Any) -> D:
-    """``dataclasses.replace`` through a dotted path, e.g. ``replace_path(cfg, "agent.gamma", 0.98)``."""
+def _nested_field(cls: type, head: str) -> dataclasses.Field | None:
+    """The nested-dataclass field of ``cls`` addressed by ``head``: its name or its flag prefix
+    (``agent`` for ``TrainConfig.agent_config``)."""
+    hints = _field_types(cls)
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]) and head in (f.name, f.metadata.get("prefix")):
+            return f
+    return None
+
+
+def field_type(cls: type, path: str) -> Any:
+    """The declared type of the field at the dotted ``path`` of ``cls`` (``"agent.gamma"`` -> ``float``);
+    :class:`ConfigError` naming ``path`` where there is no such field."""
     head, _, rest = path.partition(".")
-    if not any(f.name == head for f in dataclasses.fields(cfg)):
-        raise ConfigError(f"unknown field {path!r} in {type(cfg).__name__}")
     if rest:
-        return dataclasses.replace(cfg, **{head: replace_path(getattr(cfg, head), rest, value)})
+        nested = _nested_field(cls, head)
+        if nested is None:
+            raise ConfigError(f"unknown configuration field {path!r}")
+        try:
+            return field_type(_field_types(cls)[nested.name], rest)
+        except ConfigError:
+            raise ConfigError(f"unknown configuration field {path!r}") from None
+    hints = _field_types(cls)
+    if head not in hints or dataclasses.is_dataclass(hints[head]):
+        raise ConfigError(f"unknown configuration field {path!r}")
+    return hints[head]
+
+
+def typed_value(tp: Any, value: Any, name: str) -> Any:
+    """``value`` checked against the field type ``tp`` (no silent conversion).
+
+    An ``int`` is accepted for a ``float`` field (and becomes a float), a list for a tuple field (and
+    becomes a tuple); anything else of the wrong type is a :class:`ConfigError` naming ``name``: a float
+    for an int field (``1.7`` is not truncated), a number or a string for a bool field, ...
+    """
+    optional = type(None) in typing.get_args(tp)
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{name} cannot be none")
+    base = _base_type(tp)
+    if base is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{name} must be true or false, got {value!r}")
+    if base is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        hint = f" (write {int(value)})" if isinstance(value, float) and value.is_integer() else ""
+        raise ConfigError(f"{name} must be an integer, got {value!r}{hint}")
+    if base is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{name} must be a number, got {value!r}")
+    if base is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{name} must be a string, got {value!r}")
+    if base is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{name} must be a list, got {value!r}")
+        item = (typing.get_args(_strip_optional(tp)) or (Any,))[0]
+        if item is Any:
+            return tuple(value)
+        return tuple(typed_value(item, v, f"{name}[{i}]") for i, v in enumerate(value))
+    if base is dict:
+        if isinstance(value, dict):
+            return dict(value)
+        raise ConfigError(f"{name} must be an object (a dict), got {value!r}")
+    return value
+
+
+def replace_path(cfg: D, path: str, value: Any) -> D:
+    """``dataclasses.replace`` through a dotted path, e.g. ``replace_path(cfg, "agent.gamma", 0.98)``.
+
+    A nested dataclass is addressed by its field name or its flag prefix (``agent`` for
+    ``agent_config``); ``value`` is checked against the field's type (:func:`typed_value`) but not
+    validated (call :func:`validate` on the result).
+    """
+    value = typed_value(field_type(type(cfg), path), value, path)
+    return _replace(cfg, path, value)
+
+
+def _replace(cfg: Any, path: str, value: Any) -> Any:
+    head, _, rest = path.partition(".")
+    if rest:
+        name = _nested_field(type(cfg), head).name  # type: ignore[union-attr]
+        return dataclasses.replace(cfg, **{name: _replace(getattr(cfg, name), rest, value)})
     return dataclasses.replace(cfg, **{head: value})

@@ -5,6 +5,16 @@ are skipped, interrupted ones resumed, so re-running the command only does what 
 ``mfrl-matched`` is MFRL with the agent-update budget of the model-based runs (their update-to-data
 ratio), which separates the effect of the model from the effect of more updates.
 
+Every run's configuration is resolved here, as a :class:`~pimbrl.training.TrainConfig`, before anything
+starts. A new run's child process gets it as a file, ``DIR/<method>/seed<k>/config.request.json``
+(``pimbrl train --config FILE``); the run's ``config.json`` then records the same configuration.
+
+Overrides common to all runs (``{"total_steps": 5000, "dyna.model_steps": 5}``, the arguments after
+``--`` of ``pimbrl compare``) go to every run they apply to: a ``dyna.*`` override goes to the mbrl and
+pimbrl runs and not to the mfrl ones, an agent field of SAC only to SAC runs, and so on
+(:func:`~pimbrl.training.config.inapplicable_reason`). An override that applies to none of the runs is an
+error.
+
 Outputs: ``curves.png`` (per method: the mean over seeds of the mean test return, with the band from the
 lowest to the highest test episode of any seed), ``summary.csv`` (per run and per method: steps to the
 threshold, final and best mean test return, wall-clock, updates and the update-to-data ratio) and
@@ -17,56 +27,115 @@ import json
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..training import RunDirectory, resolve_config
-from ..training.rundir import atomic_write_bytes
+from ..config import ConfigError, to_dict
+from ..training import RunDirectory, TrainConfig
+from ..training.cli_args import parse_train_args
+from ..training.config import inapplicable_reason, resolve_config, typed_overrides
+from ._files import atomic_write_bytes
 
-__all__ = ["COMPARE_METHODS", "RunSpec", "compare", "plan_runs", "run_all", "step_ratio", "summarize_method", "summarize_runs"]
+__all__ = [
+    "COMPARE_METHODS",
+    "REQUEST_FILE",
+    "RunSpec",
+    "compare",
+    "plan_runs",
+    "run_all",
+    "step_ratio",
+    "summarize_method",
+    "summarize_runs",
+]
 
 COMPARE_METHODS = ("mfrl", "mbrl", "pimbrl", "mfrl-matched")
+#: the file in a new run's directory that hands its configuration to the child process
+REQUEST_FILE = "config.request.json"
 
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run to make: its directory and the `pimbrl train` arguments."""
+    """One run to make: its directory and its configuration."""
 
     label: str  # method label, e.g. "pimbrl" or "mfrl-matched"
     seed: int
     path: Path
-    train_args: tuple[str, ...]
+    config: TrainConfig
 
 
-def plan_runs(env_id: str, methods: Sequence[str], seeds: Sequence[int], root: Path, extra: Sequence[str] = ()) -> list[RunSpec]:
-    """The runs of a comparison (``extra`` goes to every `pimbrl train`)."""
+def _as_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dict[str, Any]:
+    """Typed overrides; a list of `pimbrl train` flags (the old form) is parsed."""
+    if overrides is None:
+        return {}
+    if isinstance(overrides, Mapping):
+        return typed_overrides(overrides)
+    return parse_train_args([str(a) for a in overrides])
+
+
+def plan_runs(
+    env_id: str,
+    methods: Sequence[str],
+    seeds: Sequence[int],
+    root: Path,
+    overrides: Mapping[str, Any] | Sequence[str] | None = None,
+) -> list[RunSpec]:
+    """The runs of a comparison, each with its resolved configuration.
+
+    ``overrides`` (field paths -> values, or `pimbrl train` flags) go to every run they apply to; one that
+    applies to none is a :class:`ConfigError` with the reason. ``mfrl-matched`` takes the update-to-data
+    ratio of the model-based preset unless ``overrides`` set ``utd``.
+    """
+    overrides = _as_overrides(overrides)
+    for key in ("method", "seed"):
+        if key in overrides:
+            raise ConfigError(f"compare sets {key} itself (--methods, --seeds); it cannot be overridden")
+    root = Path(root)
     specs = []
+    used: set[str] = set()
+    reasons: dict[str, str] = {}
+    agent = overrides.get("agent", TrainConfig.agent)
     for label in methods:
         if label not in COMPARE_METHODS:
             raise ValueError(f"unknown method {label!r}: choose from {', '.join(COMPARE_METHODS)}")
         method = "mfrl" if label == "mfrl-matched" else label
-        args = ["--method", method]
-        if label == "mfrl-matched":  # before the user's arguments, so that a --utd of theirs wins
-            args += ["--utd", repr(resolve_config(env_id, {"method": "pimbrl"}).utd)]
-        args += list(extra)
+        fields: dict[str, Any] = {"method": method}
+        if label == "mfrl-matched":  # the user's utd wins
+            fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}).utd
+        for key, value in overrides.items():
+            reason = inapplicable_reason(env_id, method, agent, key)
+            if reason is None:
+                fields[key] = value
+                used.add(key)
+            else:
+                reasons.setdefault(key, reason)
         for seed in seeds:
-            specs.append(RunSpec(label, seed, root / label / f"seed{seed}", (env_id, "--seed", str(seed), *args)))
+            cfg = resolve_config(env_id, {**fields, "seed": seed})
+            specs.append(RunSpec(label, seed, root / label / f"seed{seed}", cfg))
+    unused = [reasons[k] for k in overrides if k not in used]
+    if unused:
+        raise ConfigError(f"{'; '.join(unused)} (methods compared: {', '.join(methods)})")
     return specs
 
 
 def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] = print) -> list[RunSpec]:
-    """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs."""
+    """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
+
+    A new run's configuration is written to ``<run>/config.request.json`` and its process started as
+    ``pimbrl train --config <that file> --run-dir <run> --quiet``; an interrupted run is resumed
+    (``pimbrl resume <run>``)."""
     pending = []
     for spec in specs:
         status = RunDirectory(spec.path).status
         if status == "finished":
             continue
         if status is None:
-            cmd = [sys.executable, "-m", "pimbrl.cli", "train", *spec.train_args, "--run-dir", str(spec.path), "--quiet"]
+            request = Path(spec.path) / REQUEST_FILE
+            atomic_write_bytes(request, (json.dumps(to_dict(spec.config), indent=2) + "\n").encode())
+            cmd = [sys.executable, "-m", "pimbrl.cli", "train", "--config", str(request), "--run-dir", str(spec.path), "--quiet"]
         else:
             cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet"]
         pending.append((spec, cmd))
@@ -173,18 +242,23 @@ def compare(
     methods: Sequence[str],
     seeds: Sequence[int],
     root: str | Path,
-    extra: Sequence[str] = (),
+    overrides: Mapping[str, Any] | Sequence[str] | None = None,
     jobs: int = 1,
     threshold: float | None = None,
     log: Callable[[str], None] = print,
     run: bool = True,
 ) -> dict[str, Any]:
     """Run (what is missing of) a comparison and write its figure and tables; with ``run=False`` start
-    nothing and summarise the runs as they stand (unfinished ones up to their last evaluation)."""
+    nothing and summarise the runs as they stand (unfinished ones up to their last evaluation).
+
+    ``overrides``: field paths -> values (``{"total_steps": 5000, "dyna.model_steps": 5}``; a list of
+    `pimbrl train` flags is read as such), applied to the runs they fit (see :func:`plan_runs`).
+    ``threshold`` is the return the summaries count as solved (default: the preset's); to also record it
+    in the runs' configurations, add it to ``overrides``."""
     root = Path(root)
+    specs = plan_runs(env_id, methods, seeds, root, overrides)  # every configuration checked before anything runs
     if run:
         root.mkdir(parents=True, exist_ok=True)
-    specs = plan_runs(env_id, methods, seeds, root, extra)
     failed = run_all(specs, jobs=jobs, log=log) if run else []
     if threshold is None:
         threshold = resolve_config(env_id, {"method": "mfrl"}).threshold

@@ -8,15 +8,26 @@ A sweep file (JSON, or TOML on Python >= 3.11) describes the grid::
       "methods": ["pimbrl"],
       "seeds": [0, 1],
       "grid": {"dyna.rollout_length": [3, 8, 40, 120]},
-      "train_args": ["--steps", "60000"],
+      "overrides": {"total_steps": 60000},
       "threshold": -55
     }
 
 ``grid`` keys are configuration fields (``utd``, ``agent.gamma``, ``dyna.threshold``, ...); every
-combination of their values is one setting. Every (env, method, setting, seed) is one trial: a
-resumable run directory ``DIR/<env>/<method>/<setting>/seed<k>``. Finished trials are skipped (a
-finished sweep re-runs in no time), interrupted ones resume from their checkpoint, and a failed trial is
-reported without stopping the others.
+combination of their values is one setting. ``overrides`` sets fields for every trial (field paths ->
+values, like the grid). Values are type-checked against their fields when the file is read: a float for an
+int field (``"dyna.rollout_length": [1.7]``) or a number for a bool field is an error, as is an unknown
+field. ``train_args``, a list of `pimbrl train` flags (``["--steps", "60000"]``), is still accepted and
+read into overrides once, when the file is loaded.
+
+A grid key must apply to every method and environment of the sweep (``dyna.*`` with mfrl is an error,
+since every setting would be the same run); an override applies to the trials it fits (``dyna.*`` to the
+mbrl and pimbrl trials, an agent field of SAC to SAC trials) and is an error only where it fits none.
+
+Every (env, method, setting, seed) is one trial: its resolved :class:`~pimbrl.training.TrainConfig`
+and a resumable run directory ``DIR/<env>/<method>/<setting>/seed<k>``. Every trial's configuration is
+resolved and checked before any trial runs. Finished trials are skipped (a finished sweep re-runs in no
+time), interrupted ones resume from their checkpoint, and a failed trial is reported without stopping the
+others.
 
 Trials run as Ray tasks (one CPU each) on a local Ray instance started for the sweep, or on an existing
 cluster with ``--address`` (the workers need pimbrl installed and the run directory on a shared file
@@ -35,20 +46,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import ConfigError
-from ..training.rundir import RunDirectory, atomic_write_bytes
+from ..config import ConfigError, typed_value
+from ..training import METHODS, RunDirectory, TrainConfig
+from ..training.cli_args import parse_train_args
+from ..training.config import inapplicable_reason, resolve_config, typed_overrides
+from ._files import atomic_write_bytes
 
 __all__ = ["SweepSpec", "Trial", "load_sweep", "plan_trials", "execute_trial", "run_sweep", "ray_available"]
+
+#: fields a sweep sets from its own keys (envs, methods, seeds), not from the grid or overrides
+_OWN = {"env": "envs", "method": "methods", "seed": "seeds"}
 
 
 @dataclass(frozen=True)
 class SweepSpec:
+    """A sweep: ``grid`` maps field paths to the values to try, ``overrides`` fields to set in every trial
+    (both typed: see :func:`~pimbrl.training.config.typed_overrides`)."""
+
     name: str
     envs: tuple[str, ...]
     methods: tuple[str, ...]
     seeds: tuple[int, ...]
     grid: dict[str, tuple[Any, ...]] = field(default_factory=dict)
-    train_args: tuple[str, ...] = ()
+    overrides: dict[str, Any] = field(default_factory=dict)
     threshold: float | None = None
 
 
@@ -57,9 +77,9 @@ class Trial:
     env: str
     method: str
     seed: int
-    params: tuple[tuple[str, Any], ...]
+    params: tuple[tuple[str, Any], ...]  # the grid values of its setting, as written in the sweep file
     path: str
-    argv: tuple[str, ...]  # `pimbrl train` arguments
+    config: TrainConfig
 
     @property
     def setting(self) -> str:
@@ -70,7 +90,7 @@ class Trial:
         return f"{self.env.split('/')[-1]} {self.method} {self.setting}"
 
 
-_KEYS = {"name", "envs", "methods", "seeds", "grid", "train_args", "threshold"}
+_KEYS = {"name", "envs", "methods", "seeds", "grid", "overrides", "train_args", "threshold"}
 
 
 def load_sweep(path: str | Path) -> SweepSpec:
@@ -90,56 +110,111 @@ def load_sweep(path: str | Path) -> SweepSpec:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a sweep file is an object (a table) of keys, got {type(data).__name__}")
     unknown = set(data) - _KEYS
     if unknown:
         raise ConfigError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_KEYS))}")
     for key in ("envs", "methods", "seeds"):
         if not isinstance(data.get(key), list) or not data[key]:
             raise ConfigError(f"{path}: '{key}' must be a non-empty list")
+    if any(not isinstance(e, str) for e in data["envs"]):
+        raise ConfigError(f"{path}: 'envs' must be a list of environment names, got {data['envs']!r}")
+    bad = [m for m in data["methods"] if m not in METHODS]
+    if bad:
+        raise ConfigError(f"{path}: unknown method(s) {', '.join(map(repr, bad))} in 'methods': choose from {', '.join(METHODS)}")
+    for seed in data["seeds"]:
+        if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+            raise ConfigError(f"{path}: 'seeds' must be a list of integers >= 0, got {seed!r}")
     grid = data.get("grid", {})
     if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
         raise ConfigError(f"{path}: 'grid' must map configuration fields to non-empty lists of values")
+    try:
+        for key, values in grid.items():
+            if key in _OWN:
+                raise ConfigError(f"'{key}' cannot be a grid key: the sweep's '{_OWN[key]}' sets it")
+            for v in values:  # every value, for an error that names it
+                try:
+                    typed_overrides({key: v})
+                except ConfigError as exc:
+                    raise ConfigError(f"grid: {exc}") from None
+        overrides = data.get("overrides", {})
+        if not isinstance(overrides, dict):
+            raise ConfigError(f"'overrides' must map configuration fields to values, got {overrides!r}")
+        overrides = typed_overrides(overrides)
+        train_args = data.get("train_args", [])
+        if not isinstance(train_args, list):
+            raise ConfigError(f"'train_args' must be a list of `pimbrl train` flags, got {train_args!r}")
+        from_args = parse_train_args([str(a) for a in train_args])
+        for key in from_args.keys() & overrides.keys():
+            raise ConfigError(f"{key} is set both in 'train_args' and in 'overrides'")
+        overrides.update(from_args)
+        for key in overrides:
+            if key in _OWN:
+                raise ConfigError(f"{key} cannot be overridden: the sweep's '{_OWN[key]}' sets it")
+            if key in grid:
+                raise ConfigError(f"{key} is both a grid key and an override")
+        threshold = data.get("threshold")
+        if threshold is not None:
+            threshold = typed_value(float, threshold, "threshold")
+            if "threshold" in overrides:
+                raise ConfigError("threshold is set both as 'threshold' and as an override")
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     return SweepSpec(
         name=str(data.get("name", path.stem)),
         envs=tuple(data["envs"]),
         methods=tuple(data["methods"]),
-        seeds=tuple(int(s) for s in data["seeds"]),
+        seeds=tuple(data["seeds"]),
         grid={k: tuple(v) for k, v in grid.items()},
-        train_args=tuple(str(a) for a in data.get("train_args", [])),
-        threshold=None if data.get("threshold") is None else float(data["threshold"]),
+        overrides=overrides,
+        threshold=threshold,
     )
 
 
-def _flag(key: str) -> str:
-    head, _, tail = key.rpartition(".")
-    return f"--{head + '.' if head else ''}{tail.replace('_', '-')}"
-
-
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
+    """Every trial of ``spec`` with its resolved configuration; :class:`ConfigError` for any that is
+    invalid (before anything runs)."""
     from ..simulate import resolve_env_id
 
     root = Path(root).resolve()
     keys = list(spec.grid)
+    fixed = typed_overrides(spec.overrides)
+    if spec.threshold is not None:
+        fixed["threshold"] = float(spec.threshold)
+    used: set[str] = set()
+    reasons: dict[str, str] = {}
     trials = []
     for env, method in itertools.product(spec.envs, spec.methods):
         env_id = resolve_env_id(env)
         for values in itertools.product(*(spec.grid[k] for k in keys)) if keys else [()]:
             params = tuple(zip(keys, values))
             setting = ",".join(f"{k}={v}" for k, v in params) or "default"
+            swept = typed_overrides(dict(params))
+            agent = swept.get("agent", fixed.get("agent", TrainConfig.agent))
+            fields = dict(swept)
+            for key, value in fixed.items():
+                reason = inapplicable_reason(env_id, method, agent, key)
+                if reason is None:
+                    fields[key] = value
+                    used.add(key)
+                else:
+                    reasons.setdefault(key, reason)
             for seed in spec.seeds:
-                argv = [env_id, "--method", method, "--seed", str(seed), *spec.train_args]
-                for k, v in params:
-                    argv += [_flag(k), ",".join(map(str, v)) if isinstance(v, list) else str(v)]
-                if spec.threshold is not None:
-                    argv += ["--threshold", repr(spec.threshold)]
+                try:
+                    cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed})
+                except ConfigError as exc:
+                    raise ConfigError(f"sweep {spec.name}, trial {env_id} {method} {setting} seed {seed}: {exc}") from None
                 path = root / env_id.split("/")[-1] / method / setting / f"seed{seed}"
-                trials.append(Trial(env_id, method, seed, params, str(path), tuple(argv)))
+                trials.append(Trial(env_id, method, seed, params, str(path), cfg))
+    unused = [reasons[k] for k in fixed if k not in used]
+    if unused:
+        raise ConfigError(f"sweep {spec.name}: {'; '.join(unused)} (methods {', '.join(spec.methods)})")
     return trials
 
 
 def execute_trial(trial: Trial) -> dict[str, Any]:
     """Train (or resume) one trial in this process; never raises (a failure is returned)."""
-    from ..cli import build_train_config
     from ..training import RunDirectory, resume_training, run_training
 
     try:
@@ -147,7 +222,7 @@ def execute_trial(trial: Trial) -> dict[str, Any]:
         if status == "finished":
             return {"path": trial.path, "ok": True, "skipped": True}
         if status is None:
-            run_training(build_train_config(list(trial.argv)), trial.path, progress=False)
+            run_training(trial.config, trial.path, progress=False)
         else:
             resume_training(trial.path, progress=False)
         return {"path": trial.path, "ok": True, "skipped": False}
@@ -173,8 +248,8 @@ def run_sweep(
 ) -> dict[str, Any]:
     """Run the unfinished trials of ``spec`` and aggregate all of them into ``root``."""
     root = Path(root)
+    trials = plan_trials(spec, root)  # every configuration checked before anything runs
     root.mkdir(parents=True, exist_ok=True)
-    trials = plan_trials(spec, root)
     todo = [t for t in trials if RunDirectory(t.path).status != "finished"]
     if use_ray is None:
         use_ray = ray_available()
