@@ -21,7 +21,6 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from ..envs import KSTask, ks_initial_state_pool
 from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 
@@ -44,10 +43,8 @@ def _policy(trainer: Any) -> Any:
 
 
 def _test_states(trainer: Any, n: int) -> np.ndarray:
-    task = trainer.env.unwrapped.task
-    if isinstance(task, KSTask):
-        return ks_initial_state_pool("test", task.pool_config, verbose=False).states[:n]
-    return task.sample_initial_states(np.random.default_rng(trainer.cfg.eval_seed), n)
+    """The first ``n`` initial states of the run's test episodes (those its evaluations start from)."""
+    return trainer.env.unwrapped.task.test_initial_states(n, trainer.cfg.eval_seed)
 
 
 def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Path:
