@@ -135,7 +135,8 @@ def test_ks_float32_and_float64_runs_stay_close() -> None:
     assert (u64 - u32.double()).abs().max() < 1e-4
 
 
-def test_ks_actuators_follow_spec() -> None:
+def test_ks_actuators_are_as_documented() -> None:
+    # docs/environments.md, section "Kuramoto-Sivashinsky": Gaussians exp(-(x - x_i)^2 / 2) / sqrt(2 pi)
     ks = KuramotoSivashinsky()
     g = ks.actuator_shapes
     assert g.shape == (4, 64)
@@ -146,8 +147,9 @@ def test_ks_actuators_follow_spec() -> None:
     np.testing.assert_allclose(g[2].max(), 1 / np.sqrt(2 * np.pi))
 
 
-def test_ks_linear_operator_stiffness_matches_spec() -> None:
-    # the largest eigenvalue magnitude of the linear FD operator is ~1396 (RK4 limit dt < ~0.00199)
+def test_ks_linear_operator_stiffness_is_as_documented() -> None:
+    # the largest eigenvalue magnitude of the linear FD operator is ~1396 (RK4 limit dt < ~0.00199;
+    # docs/environments.md, section "Kuramoto-Sivashinsky")
     lam = KuramotoSivashinsky().linear.symbol(64).real
     assert abs(lam.min()) == pytest.approx(1396, rel=0.01)
 

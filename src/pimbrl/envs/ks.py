@@ -140,7 +140,8 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
     (see :class:`pimbrl.envs.ks.KSTask`).
 
     ## Version History
-    * v0: initial version, numerics of the authors' code (SPEC 1.1).
+    * v0: initial version, numerics of the authors' code (docs/environments.md, section
+      "Kuramoto-Sivashinsky", lists them in full).
     """
 
 

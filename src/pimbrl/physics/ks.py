@@ -2,7 +2,7 @@
 
     u_t + u_xx + u_xxxx + u u_x = f(x, t),   x in [0, L) periodic,
 
-discretised exactly as the authors' code computes it (SPEC section 1.1):
+discretised exactly as the authors' code computes it (docs/environments.md, section "Kuramoto-Sivashinsky"):
 
     du/dt = -D4 u / dx^4 - D2 u / dx^2 - Dup(u^2; u) / (2 dx) + f
 
