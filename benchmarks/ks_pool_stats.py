@@ -1,7 +1,8 @@
 """Uncontrolled-return distribution of the KS initial-state pools, next to the authors' states.
 
 The authors' 200 shipped states (one unforced run, t ~ 37-87) give 400-step uncontrolled returns of
--234.6 ... -244.7 (mean -240.0), SPEC 1.1. This prints the same statistics for our train and test
+-234.6 ... -244.7 (mean -240.0), measured on their code (docs/environments.md, section "KS initial
+states"). This prints the same statistics for our train and test
 pools (default generator settings) and records them in benchmarks/results/ks_pools.json.
 
 Usage: ``python benchmarks/ks_pool_stats.py``

@@ -9,6 +9,9 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 from pimbrl import ENV_IDS
+from pimbrl.envs import BurgersTask, KSTask, PendulumTask
+
+from .conftest import SMALL_POOL
 
 KS = "pimbrl/KuramotoSivashinsky-v0"
 
@@ -215,3 +218,20 @@ def test_vector_env_autoreset_modes() -> None:
         _, _, term, trunc, _ = vec.step(np.zeros((2, 1), np.float32))
         assert not term.any()
         assert trunc.all() == (t == 199)
+
+
+def test_test_initial_states_are_fixed_and_ks_takes_its_test_pool(ks_small_pools) -> None:
+    for task in (BurgersTask(), PendulumTask()):
+        a = task.test_initial_states(5, seed=11)
+        np.testing.assert_array_equal(a, task.sample_initial_states(np.random.default_rng(11), 5))
+        np.testing.assert_array_equal(a, task.test_initial_states(5, seed=11))
+    train, test = ks_small_pools
+    ks = KSTask(pool_config=SMALL_POOL)
+    assert ks.test_pool_size == len(test.states) == SMALL_POOL.n_test
+    np.testing.assert_array_equal(ks.test_initial_states(3, seed=0), test.states[:3])
+    np.testing.assert_array_equal(ks.test_initial_states(3, seed=99), test.states[:3])  # the seed plays no part
+    # a task that trains from given states still evaluates on the test pool
+    custom = KSTask(initial_states=train.states[:2], pool_config=SMALL_POOL)
+    np.testing.assert_array_equal(custom.test_initial_states(SMALL_POOL.n_test, seed=0), test.states)
+    with pytest.raises(ValueError, match="test pool holds 8"):
+        ks.test_initial_states(SMALL_POOL.n_test + 1, seed=0)

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from pimbrl.cli import main
-from pimbrl.envs import BurgersTask, CartPoleTask
+from pimbrl.envs import BurgersTask, CartPoleTask, PendulumTask
+from pimbrl.experiments.model_eval import OUT_OF_SAMPLE
 from pimbrl.models import ConvLSTMModel, MLPModel, ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from pimbrl.physics import Burgers, CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.physics.kernels import build_pde_kernel
@@ -169,3 +170,15 @@ def test_model_eval_command_writes_errors_and_histograms(tmp_path, capsys) -> No
     assert (run / "model_errors.png").stat().st_size > 10_000 and (run / "summary.json").exists()
     assert main(["model-eval", "cartpole", "--run-dir", str(run), "--scheme", "rk2"]) == 2
     assert "scheme must be 'etd' or 'solver'" in capsys.readouterr().err
+
+
+def test_model_eval_out_of_sample_states_respect_the_physics_bounds() -> None:
+    rng = np.random.default_rng(0)
+    cart = CartPoleTask()
+    u = OUT_OF_SAMPLE["pimbrl/CartPole-v0"](cart, rng, 500)
+    assert np.abs(u[:, 0]).max() < cart.physics.x_threshold
+    assert np.abs(u[:, 2]).max() < cart.physics.theta_threshold_radians
+    assert not np.asarray(cart.physics.terminated(u)).any()
+    pend = PendulumTask()
+    u = OUT_OF_SAMPLE["pimbrl/Pendulum-v0"](pend, rng, 500)
+    assert np.abs(u[:, 1]).max() <= pend.physics.max_speed and np.abs(u[:, 1]).max() > 0.9 * pend.physics.max_speed

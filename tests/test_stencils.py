@@ -54,7 +54,8 @@ def test_convergence_order(stencil: Stencil, order: int, derivative: int) -> Non
 
 
 def test_forward_upwind_is_minus_mirror_of_backward() -> None:
-    # SPEC: forward = -(25/12 w_j - 4 w_{j+1} + 3 w_{j+2} - 4/3 w_{j+3} + 1/4 w_{j+4})
+    # forward = -(25/12 w_j - 4 w_{j+1} + 3 w_{j+2} - 4/3 w_{j+3} + 1/4 w_{j+4})
+    # (docs/environments.md, section "Kuramoto-Sivashinsky")
     for o_b, c_b in zip(KS_UPWIND_BACKWARD.offsets, KS_UPWIND_BACKWARD.coeffs):
         i = KS_UPWIND_FORWARD.offsets.index(-o_b)
         assert KS_UPWIND_FORWARD.coeffs[i] == -c_b

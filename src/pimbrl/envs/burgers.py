@@ -93,7 +93,8 @@ _DOC = """Viscous Burgers reference tracking with two actuators (Liu & Wang 2021
     ``divergence_penalty``.
 
     ## Version History
-    * v0: initial version, numerics of the authors' code (SPEC 1.2).
+    * v0: initial version, numerics of the authors' code (docs/environments.md, section
+      "Viscous Burgers", lists them in full).
     """
 
 

@@ -74,6 +74,24 @@ class KSTask(Task):
         """``n`` states drawn with replacement from the initial-state pool."""
         return self.pool[rng.integers(len(self.pool), size=n)].copy()
 
+    @property
+    def test_pool_size(self) -> int:
+        """Number of states in the test pool of :attr:`pool_config` (known without generating it)."""
+        return (self.pool_config or KSPoolConfig()).n_test
+
+    def test_initial_states(self, n: int, seed: int) -> np.ndarray:
+        """The first ``n`` states of the test pool of :attr:`pool_config`, in pool order; ``seed`` is unused.
+
+        The test pool comes from runs disjoint from the training pool's, whatever ``initial_states`` this
+        task samples its training episodes from.
+        """
+        if not 0 <= n <= self.test_pool_size:
+            raise ValueError(
+                f"{n} KS test states requested, but the test pool holds {self.test_pool_size} "
+                "(raise KSPoolConfig.n_test through pool_config, or ask for fewer test episodes)"
+            )
+        return ks_initial_state_pool("test", self.pool_config).states[:n].copy()
+
     def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
         """The field itself, as float32."""
         return u.astype(np.float32)
@@ -129,7 +147,8 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
     (see :class:`pimbrl.envs.ks.KSTask`).
 
     ## Version History
-    * v0: initial version, numerics of the authors' code (SPEC 1.1).
+    * v0: initial version, numerics of the authors' code (docs/environments.md, section
+      "Kuramoto-Sivashinsky", lists them in full).
     """
 
 

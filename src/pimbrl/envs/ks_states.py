@@ -2,7 +2,8 @@
 
 At L = 8 pi the unforced discretised KS system is chaotic only for a while: after ~40-200 time units most
 runs settle onto a steady state (energy mean(u^2) ~ 2.8, reward ~ -2.3 per step). "Sampled from the
-attractor" therefore means here (SPEC 1.1): snapshots from the chaotic phase of unforced runs.
+attractor" therefore means here: snapshots from the chaotic phase of unforced runs (see
+docs/environments.md, section "KS initial states", for the reasons and the resulting statistics).
 
 Generation, fully seeded:
 

@@ -104,3 +104,11 @@ class Task(ABC):
                 "the policy produced a non-finite value - check the agent's network and inputs"
             )
         return np.clip(arr, low, high)
+
+    def test_initial_states(self, n: int, seed: int) -> np.ndarray:
+        """``(n, state_dim)`` float64 initial states of the test episodes, the same on every call.
+
+        By default ``n`` states drawn by :meth:`sample_initial_states` from ``np.random.default_rng(seed)``;
+        a task with a fixed, held-out test set (KS) returns the first ``n`` states of that set instead.
+        """
+        return self.sample_initial_states(np.random.default_rng(seed), n)

@@ -22,7 +22,6 @@ import numpy as np
 import torch
 
 from .. import training
-from ..envs import KSTask, ks_initial_state_pool
 from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 from ..training import Run
@@ -43,11 +42,9 @@ def _policy(trainer: Any) -> Any:
     return lambda obs: adapter.to_env(trainer.agent.act(np.asarray(obs)[None], deterministic=True)[0])
 
 
-def _test_states(trainer: Any, n: int) -> np.ndarray:
-    task = trainer.task
-    if isinstance(task, KSTask):
-        return ks_initial_state_pool("test", task.pool_config, verbose=False).states[:n]
-    return task.sample_initial_states(np.random.default_rng(trainer.cfg.eval_seed), n)
+def _test_states(trainer: Run, n: int) -> np.ndarray:
+    """The first ``n`` initial states of the run's test episodes (those its evaluations start from)."""
+    return trainer.task.test_initial_states(n, trainer.cfg.eval_seed)
 
 
 def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Path:

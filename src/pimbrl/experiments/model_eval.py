@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..config import non_negative, param, positive, validate
-from ..envs import PhysicsEnv, Task, ks_initial_state_pool
+from ..envs import PhysicsEnv, Task
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
 from ..training.rundir import atomic_write_bytes
@@ -63,31 +63,41 @@ DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 
+#: control steps of strong alternating actuation that take KS test states off the chaotic set
+KS_FORCING_STEPS = 20
+#: half-widths of the Cart-Pole out-of-sample box ``(x, x_dot, theta, theta_dot)``: position and angle
+#: stay inside the physics' termination bounds (``x_threshold``, ``theta_threshold_radians``; tested)
+CARTPOLE_WIDE_BOX = np.array([2.0, 2.0, 0.18, 2.0])
+
+
 def _ks_forced_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """KS test-pool states driven 20 control steps by a strong alternating actuation: far from the chaotic set."""
-    pool = ks_initial_state_pool("test", getattr(task, "pool_config", None), verbose=False).states
+    """KS test-pool states driven by the strongest alternating actuation (+max, -max, ...) for
+    :data:`KS_FORCING_STEPS` control steps: far from the chaotic set."""
+    phys = task.physics
+    pool = task.test_initial_states(task.test_pool_size, seed=0)  # type: ignore[attr-defined]  # KSTask
     u = pool[rng.integers(len(pool), size=n)]
-    a = np.tile(np.array([0.5, -0.5, 0.5, -0.5]), (n, 1)) * rng.choice([-1.0, 1.0], size=(n, 1))
-    for _ in range(20):
-        u, _ = task.physics.advance(u, a, np.zeros(n))
+    pattern = np.where(np.arange(phys.action_dim) % 2 == 0, phys.action_high, phys.action_low)
+    a = np.tile(pattern, (n, 1)) * rng.choice([-1.0, 1.0], size=(n, 1))
+    for _ in range(KS_FORCING_STEPS):
+        u, _ = phys.advance(u, a, np.zeros(n))
     return u
 
 
 def _burgers_large_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """Burgers initial shapes with twice the amplitude and twice the offset."""
-    x = task.physics.x[None, :]  # type: ignore[attr-defined]
-    c = rng.uniform(0, 1, (n, 1))
-    return 0.4 * c * np.exp(-25 * (x - 0.5) ** 2) + 0.4 * (1 - c) * np.sin(4 * np.pi * x) + 0.4
+    """The task's Burgers initial shapes doubled: twice the amplitude and twice the offset."""
+    c = rng.uniform(0, 1, (n, 1))[:, 0]
+    return 2.0 * task.initial_state(c)  # type: ignore[attr-defined]  # BurgersTask
 
 
 def _pendulum_fast_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     """Pendulum states uniform over the whole state space, up to the speed limit."""
-    return np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-8.0, 8.0, n)], axis=1)
+    max_speed = task.physics.max_speed  # type: ignore[attr-defined]  # Pendulum
+    return np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-max_speed, max_speed, n)], axis=1)
 
 
 def _cartpole_wide_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     """Cart-Pole states far from upright rest: larger positions, speeds and angles (still inside the bounds)."""
-    return rng.uniform([-2.0, -2.0, -0.18, -2.0], [2.0, 2.0, 0.18, 2.0], (n, 4))
+    return rng.uniform(-CARTPOLE_WIDE_BOX, CARTPOLE_WIDE_BOX, (n, 4))
 
 
 #: initial-state samplers of the out-of-sample test distributions

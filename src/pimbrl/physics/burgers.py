@@ -2,9 +2,10 @@
 
     u_t + (u^2/2)_xi = nu u_xixi + a1 f1(xi) + a2 f2(xi),   xi in [0, 1) periodic, nu = 0.01,
 
-discretised as the authors' code computes it (SPEC section 1.2): 4th-order central diffusion,
-2nd-order backward (upwind for u > 0) convection of ``s = u^2/2``, explicit Euler with dt = 0.001 and
-500 steps per control step (0.5 time units). The paper's dt = 0.01 blows up in the first control step.
+discretised as the authors' code computes it (docs/environments.md, section "Viscous Burgers"):
+4th-order central diffusion, 2nd-order backward (upwind for u > 0) convection of ``s = u^2/2``,
+explicit Euler with dt = 0.001 and 500 steps per control step (0.5 time units). The paper's dt = 0.01
+blows up in the first control step.
 """
 
 from __future__ import annotations

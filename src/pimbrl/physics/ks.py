@@ -2,7 +2,7 @@
 
     u_t + u_xx + u_xxxx + u u_x = f(x, t),   x in [0, L) periodic,
 
-discretised exactly as the authors' code computes it (SPEC section 1.1):
+discretised exactly as the authors' code computes it (docs/environments.md, section "Kuramoto-Sivashinsky"):
 
     du/dt = -D4 u / dx^4 - D2 u / dx^2 - Dup(u^2; u) / (2 dx) + f
 
@@ -130,10 +130,30 @@ class KuramotoSivashinsky(SemilinearPDE):
         return -(terms[..., 0] * w[0] + terms[..., 1] * w[1] + terms[..., 2] * w[2] + terms[..., 3] * w[3])
 
     def reward(self, u: Array, a: Array, u_next: Array, k: Array | int, path: Array | None = None) -> Array:
-        """Average over the solver steps of the control step (``path``; the start state if ``None``)."""
-        states = u[..., None, :] if path is None else path
+        """The control step's reward: the integrand averaged over the step as the simulator averages it.
+
+        The simulator averages the integrand ``g`` over the states at the start of its ``M = substeps``
+        solver steps (a left sum). ``path`` holds the states at the start of ``N`` equal sub-steps of the
+        control step (axis ``-2``, ``u`` first); ``None`` means ``N = 1`` (the start state only).
+
+        * ``N == M`` (the solver's own states): that left sum, exactly as the simulator computes it.
+        * ``N < M`` (e.g. a model's intermediate states): the trapezoid rule over the ``N + 1`` sub-step
+          boundaries (``u_next`` closes the last sub-step) plus the end correction
+          ``(g_0 - g_N) / (2 M)`` by which an ``M``-point left sum exceeds the integral. Fed the
+          solver's own states with ``N = 5`` it was within 0.12 % of the simulator's reward at every
+          control step measured; the left sum over the ``N`` start states alone was up to 4.4 % off
+          (docs/environments.md, section "KS reward from a model's intermediate states").
+        """
         f = self.forcing(a)[..., None, :]
-        return self.reward_from_terms(self.reward_terms(states, f).mean(-2))
+        states = u[..., None, :] if path is None else path
+        terms = self.reward_terms(states, f)
+        n, m = terms.shape[-2], self.substeps
+        if n >= m:
+            return self.reward_from_terms(terms.mean(-2))
+        first = terms[..., 0, :]
+        last = self.reward_terms(u_next, f[..., 0, :])
+        trapezoid = (terms.sum(-2) + 0.5 * (last - first)) / n
+        return self.reward_from_terms(trapezoid + (first - last) / (2 * m))
 
     # ------------------------------------------------------------------ fast simulator
     def kernel_spec(self) -> PDEKernelSpec:

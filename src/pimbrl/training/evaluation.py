@@ -1,8 +1,8 @@
 """Evaluation protocol: the deterministic policy on a fixed, held-out set of initial states.
 
-* pimbrl environments: all test episodes run at once in one native vector env, from fixed initial
-  states - the KS test pool (disjoint from the training pool), or states drawn once with ``eval_seed``
-  for the others;
+* pimbrl environments: all test episodes run at once in one native vector env, from the fixed initial
+  states ``Task.test_initial_states(episodes, eval_seed)`` - the first states of the KS test pool
+  (disjoint from the training pool), or states drawn once with ``eval_seed`` for the others;
 * other Gymnasium environments: episodes one after another, reset with seeds ``eval_seed + i``.
 
 The same states are used at every evaluation of a run and by every run with the same settings, so
@@ -19,7 +19,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from ..envs import KSTask, PhysicsEnv, ks_initial_state_pool
+from ..envs import PhysicsEnv
 from ..spaces import ActionAdapter
 
 __all__ = ["EvalResult", "Evaluator"]
@@ -60,14 +60,7 @@ class Evaluator:
         base = probe.unwrapped
         self.native = isinstance(base, PhysicsEnv)
         if isinstance(base, PhysicsEnv):
-            task = base.task
-            if isinstance(task, KSTask):
-                pool = ks_initial_state_pool("test", task.pool_config).states
-                if self.episodes > len(pool):
-                    raise ValueError(f"eval_episodes={self.episodes} exceeds the KS test pool ({len(pool)} states)")
-                self.initial_states = pool[: self.episodes]
-            else:
-                self.initial_states = task.sample_initial_states(np.random.default_rng(self.seed), self.episodes)
+            self.initial_states = base.task.test_initial_states(self.episodes, self.seed)
             self.vec = gym.make_vec(
                 env_id,
                 num_envs=self.episodes,
