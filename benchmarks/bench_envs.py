@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 
-import _common  # noqa: F401  (pins threads first)
+import _common
 import gymnasium as gym
 import numpy as np
 

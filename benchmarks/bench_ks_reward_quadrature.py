@@ -32,7 +32,7 @@ from __future__ import annotations
 import argparse
 import time
 
-import _common  # noqa: F401  (pins threads first)
+import _common
 import numpy as np
 
 from pimbrl.envs import ks_initial_state_pool

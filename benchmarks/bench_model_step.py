@@ -8,7 +8,7 @@ initial states), i.e. how far the physics loss's target is from the true environ
 
 from __future__ import annotations
 
-import _common  # noqa: F401  (pins threads first)
+import _common
 import numpy as np
 import torch
 

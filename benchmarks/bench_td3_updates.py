@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 
-import _common  # noqa: F401  (pins threads first)
+import _common
 import gymnasium as gym
 import numpy as np
 import torch

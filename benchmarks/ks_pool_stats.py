@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 
-import _common  # noqa: F401  (pins threads first)
+import _common
 import numpy as np
 
 from pimbrl.envs import KSPoolConfig, ks_initial_state_pool
@@ -29,8 +29,8 @@ def main() -> None:
         for reward in ("code", "physical"):
             r = pool.uncontrolled_returns(KuramotoSivashinsky(reward=reward))
             stats = {
-                "n": int(len(r)),
-                "runs": int(len(np.unique(pool.run_ids))),
+                "n": len(r),
+                "runs": len(np.unique(pool.run_ids)),
                 "min": float(r.min()),
                 "p5": float(np.percentile(r, 5)),
                 "median": float(np.median(r)),

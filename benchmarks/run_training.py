@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-import _common  # noqa: F401  (pins threads first)
+import _common
 
 from pimbrl.experiments.compare import RunSpec, run_all
 from pimbrl.training import RunDirectory

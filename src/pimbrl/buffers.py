@@ -104,7 +104,8 @@ class Transitions:
 
 def physics_extras(state_dim: int, action_dim: int) -> dict[str, tuple[int, ...]]:
     """Buffer extras of a model-based run: the physical fields, plus per-transition flags ``holdout``
-    (kept out of model training to measure its accuracy) and ``valid`` (0 where the step blew up)."""
+    (kept out of model training to measure its accuracy) and ``valid`` (0 where the step blew up).
+    """
     return {
         "state": (state_dim,),
         "next_state": (state_dim,),
@@ -194,7 +195,8 @@ class ReplayBuffer:
 
     def add_transitions(self, tr: Transitions, **flags: np.ndarray) -> None:
         """Store :class:`Transitions`; a buffer with physical extras stores their physical fields too, and
-        ``flags`` (e.g. ``holdout``, ``valid``) fill the remaining extras."""
+        ``flags`` (e.g. ``holdout``, ``valid``) fill the remaining extras.
+        """
         extras = {**(tr.physics() if self.extras else {}), **flags}
         self.add(tr.obs, tr.action, tr.reward, tr.next_obs, tr.terminated, tr.truncated, **extras)
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from .config import ConfigError, add_arguments, overrides_from_args, to_dict
 
-__all__ = ["main", "build_parser"]
+__all__ = ["build_parser", "main"]
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -74,7 +74,8 @@ def _flag_of(path: str) -> str:
 
 def build_train_config(argv: list[str]):
     """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run (kept for
-    compatibility: :func:`pimbrl.training.cli_args.config_from_argv`)."""
+    compatibility: :func:`pimbrl.training.cli_args.config_from_argv`).
+    """
     from .training.cli_args import config_from_argv
 
     return config_from_argv(argv)

@@ -3,7 +3,7 @@
 Both hold float64 physical states and step them through the task's batched ``advance``; the vector env
 steps all sub-environments in one call, with no Python loop over environments.
 
-Common behaviour (SPEC section 1, "Common to all"):
+Common behaviour (docs/environments.md, section 'Common behaviour'):
 
 * ``reset(seed=..., options={"initial_state": u})`` starts from a given physical state;
 * actions outside the box are clipped; NaN/inf actions raise ``ValueError`` with a clear message;

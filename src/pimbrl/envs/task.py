@@ -79,7 +79,8 @@ class Task(ABC):
 
     def advance(self, u: np.ndarray, physical_action: np.ndarray, k: np.ndarray) -> StepOutcome:
         """One control step for a batch (arguments in the order of :meth:`Physics.advance`); blown-up
-        environments keep their pre-step state."""
+        environments keep their pre-step state.
+        """
         u_next, reward = self.physics.advance(u, physical_action, k)
         reward = np.asarray(reward, dtype=np.float64) + np.zeros(len(u))
         diverged = self.physics.diverged(u_next) | ~np.isfinite(reward)

@@ -126,7 +126,8 @@ def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] 
 
     A new run's configuration is written to ``<run>/config.request.json`` and its process started as
     ``pimbrl train --config <that file> --run-dir <run> --quiet``; an interrupted run is resumed
-    (``pimbrl resume <run>``)."""
+    (``pimbrl resume <run>``).
+    """
     pending = []
     for spec in specs:
         status = RunDirectory(spec.path).status
@@ -200,7 +201,8 @@ def summarize_method(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     """Ratio of the mean steps to the threshold, a/b. Where some runs of b never reached the threshold,
-    they count at their budget, which makes the ratio an upper bound."""
+    they count at their budget, which makes the ratio an upper bound.
+    """
     if a["steps_to_threshold_mean"] is None:
         return {"value": None, "note": "pimbrl did not reach the threshold on every seed"}
     if b["steps_to_threshold_mean"] is None:
@@ -254,7 +256,8 @@ def compare(
     ``overrides``: field paths -> values (``{"total_steps": 5000, "dyna.model_steps": 5}``; a list of
     `pimbrl train` flags is read as such), applied to the runs they fit (see :func:`plan_runs`).
     ``threshold`` is the return the summaries count as solved (default: the preset's); to also record it
-    in the runs' configurations, add it to ``overrides``."""
+    in the runs' configurations, add it to ``overrides``.
+    """
     root = Path(root)
     specs = plan_runs(env_id, methods, seeds, root, overrides)  # every configuration checked before anything runs
     if run:

@@ -26,7 +26,7 @@ from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 from ..training import Run
 
-__all__ = ["ks_contours", "burgers_episodes", "model_error_histograms", "rollout_snapshots", "load_run"]
+__all__ = ["burgers_episodes", "ks_contours", "load_run", "model_error_histograms", "rollout_snapshots"]
 
 
 def load_run(run_dir: str | Path) -> Run:

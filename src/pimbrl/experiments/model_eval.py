@@ -32,7 +32,7 @@ from ..models import ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
 from ..training.rundir import atomic_write_bytes
 
-__all__ = ["ModelEvalConfig", "run_model_eval", "collect_transitions", "OUT_OF_SAMPLE"]
+__all__ = ["OUT_OF_SAMPLE", "ModelEvalConfig", "collect_transitions", "run_model_eval"]
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,8 @@ CARTPOLE_WIDE_BOX = np.array([2.0, 2.0, 0.18, 2.0])
 
 def _ks_forced_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     """KS test-pool states driven by the strongest alternating actuation (+max, -max, ...) for
-    :data:`KS_FORCING_STEPS` control steps: far from the chaotic set."""
+    :data:`KS_FORCING_STEPS` control steps: far from the chaotic set.
+    """
     phys = task.physics
     pool = task.test_initial_states(task.test_pool_size, seed=0)  # type: ignore[attr-defined]  # KSTask
     u = pool[rng.integers(len(pool), size=n)]
@@ -144,7 +145,7 @@ def collect_transitions(
         if done.any():
             u[done] = initial_states(rng, int(done.sum()))
             k[done] = 0
-    cat = lambda parts: torch.as_tensor(np.concatenate(parts)[:n], dtype=torch.float32)  # noqa: E731
+    cat = lambda parts: torch.as_tensor(np.concatenate(parts)[:n], dtype=torch.float32)
     canonical = task.physics.canonical
     return TransitionData(cat([canonical(s) for s in states]), cat(actions), cat([canonical(s) for s in nexts]))
 

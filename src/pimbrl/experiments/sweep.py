@@ -52,7 +52,7 @@ from ..training.cli_args import parse_train_args
 from ..training.config import inapplicable_reason, resolve_config, typed_overrides
 from ._files import atomic_write_bytes
 
-__all__ = ["SweepSpec", "Trial", "load_sweep", "plan_trials", "execute_trial", "run_sweep", "ray_available"]
+__all__ = ["SweepSpec", "Trial", "execute_trial", "load_sweep", "plan_trials", "ray_available", "run_sweep"]
 
 #: fields a sweep sets from its own keys (envs, methods, seeds), not from the grid or overrides
 _OWN = {"env": "envs", "method": "methods", "seed": "seeds"}
@@ -61,7 +61,8 @@ _OWN = {"env": "envs", "method": "methods", "seed": "seeds"}
 @dataclass(frozen=True)
 class SweepSpec:
     """A sweep: ``grid`` maps field paths to the values to try, ``overrides`` fields to set in every trial
-    (both typed: see :func:`~pimbrl.training.config.typed_overrides`)."""
+    (both typed: see :func:`~pimbrl.training.config.typed_overrides`).
+    """
 
     name: str
     envs: tuple[str, ...]
@@ -174,7 +175,8 @@ def load_sweep(path: str | Path) -> SweepSpec:
 
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
     """Every trial of ``spec`` with its resolved configuration; :class:`ConfigError` for any that is
-    invalid (before anything runs)."""
+    invalid (before anything runs).
+    """
     from ..simulate import resolve_env_id
 
     root = Path(root).resolve()

@@ -20,12 +20,13 @@ from ..agents import AgentConfig
 from ..config import ConfigError, add_arguments, overrides_from_args
 from .config import DynaConfig, TrainConfig, resolve_config
 
-__all__ = ["add_train_flags", "overrides_from_namespace", "parse_train_args", "config_from_argv"]
+__all__ = ["add_train_flags", "config_from_argv", "overrides_from_namespace", "parse_train_args"]
 
 
 def add_train_flags(parser: argparse.ArgumentParser) -> None:
     """Add the configuration flags of ``pimbrl train`` to ``parser``: ``--steps``, ``--env-kwargs`` and
-    one flag per field (defaults unset, so that only the flags given override a preset)."""
+    one flag per field (defaults unset, so that only the flags given override a preset).
+    """
     parser.add_argument("--steps", type=int, default=None, help="real environment steps (alias of --total-steps)")
     parser.add_argument(
         "--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make"
@@ -37,7 +38,8 @@ def add_train_flags(parser: argparse.ArgumentParser) -> None:
 
 def overrides_from_namespace(args: argparse.Namespace) -> dict[str, Any]:
     """The configuration flags given in ``args`` (parsed with :func:`add_train_flags`) as overrides:
-    ``{"total_steps": 200, "agent.gamma": 0.9, ...}``."""
+    ``{"total_steps": 200, "agent.gamma": 0.9, ...}``.
+    """
     overrides = overrides_from_args(args, TrainConfig)
     overrides.pop("env", None)  # the positional environment, not a flag
     if getattr(args, "steps", None) is not None:
@@ -80,7 +82,8 @@ def _parse(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Nam
 def parse_train_args(argv: Sequence[str]) -> dict[str, Any]:
     """Typed overrides from `pimbrl train` flags (no environment), e.g. ``["--steps", "200",
     "--agent.gamma", "0.9"]`` -> ``{"total_steps": 200, "agent.gamma": 0.9}`` (``--quiet`` is accepted
-    and ignored); :class:`ConfigError` with the parser's message for arguments it cannot read."""
+    and ignored); :class:`ConfigError` with the parser's message for arguments it cannot read.
+    """
     return overrides_from_namespace(_parse(_parser(positional_env=False), argv))
 
 

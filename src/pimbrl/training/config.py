@@ -1,7 +1,8 @@
 """Training configuration: one typed dataclass, per-environment presets from the paper, overrides.
 
-``resolve_config(env, overrides)`` starts from the defaults, applies the environment's preset (SPEC
-section 3 and the paper's tables), then the user's overrides, and validates every field.
+``resolve_config(env, overrides)`` starts from the defaults, applies the environment's preset
+(docs/methods.md, section 'Presets', and the paper's Table 2), then the user's overrides, and validates
+every field.
 
 Overrides are typed: ``{"utd": 5.0, "agent.gamma": 0.98, "dyna.rollout_length": 7}``, each value checked
 against its field's type (a float for an int field is an error, not truncated). An override that does
@@ -35,16 +36,16 @@ from ..config import (
 )
 
 __all__ = [
+    "METHODS",
+    "PRESETS",
     "DynaConfig",
     "TrainConfig",
-    "PRESETS",
-    "resolve_config",
-    "METHODS",
-    "typed_overrides",
+    "config_from_dict",
     "inapplicable_reason",
     "is_pde_env",
-    "config_from_dict",
     "load_config_file",
+    "resolve_config",
+    "typed_overrides",
 ]
 
 METHODS = ("mfrl", "mbrl", "pimbrl")
@@ -188,7 +189,7 @@ TD3_ONLY = ("policy_delay", "target_smoothing", "target_noise", "noise_clip")  #
 NOISE_EXPLORATION = ("exploration_noise",)  # TD3, DDPG; SAC samples its stochastic policy
 #: dyna fields that only the physics loss reads (pimbrl) and only the PDE models read. start_physics_after
 #: is read by pimbrl only too, but the shared smoke settings of the tests give it to mbrl runs: not checked
-PIMBRL_ONLY = ("physics_weight", "residual")
+PIMBRL_ONLY = ("physics_weight", "residual", "start_physics_after")
 PDE_ONLY = ("n_intermediate", "residual")
 
 
@@ -200,7 +201,8 @@ def _flag(path: str) -> str:
 @functools.cache
 def is_pde_env(env: str) -> bool:
     """Whether ``env`` is a pimbrl environment whose physics is a PDE (:class:`~pimbrl.physics.pde.SemilinearPDE`:
-    Burgers, Kuramoto-Sivashinsky); ``False`` for the ODE systems and for any other Gymnasium id."""
+    Burgers, Kuramoto-Sivashinsky); ``False`` for the ODE systems and for any other Gymnasium id.
+    """
     import gymnasium as gym
 
     from ..physics.pde import SemilinearPDE
@@ -223,7 +225,8 @@ def is_pde_env(env: str) -> bool:
 
 def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | None:
     """Why the field ``path`` (``"dyna.rollout_length"``, ``"agent.init_alpha"``, ...) does nothing for a
-    run of ``method`` with ``agent`` on ``env``; ``None`` where it applies."""
+    run of ``method`` with ``agent`` on ``env``; ``None`` where it applies.
+    """
     section, _, name = path.rpartition(".")
     flag = _flag(path)
     if section == "dyna":
@@ -248,7 +251,8 @@ def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | N
 
 def typed_overrides(overrides: Mapping[str, Any]) -> dict[str, Any]:
     """``overrides`` (dotted field paths -> values) with every path checked to be a field of
-    :class:`TrainConfig` and every value against that field's type (:func:`pimbrl.config.typed_value`)."""
+    :class:`TrainConfig` and every value against that field's type (:func:`pimbrl.config.typed_value`).
+    """
     out = {}
     for path, value in overrides.items():
         if path == "env":
@@ -308,7 +312,8 @@ def resolve_config(
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     """A :class:`TrainConfig` from a whole configuration as :func:`pimbrl.config.to_dict` writes it (the
     ``config`` of a run's ``config.json``, or ``pimbrl train --print-config``); every value type-checked,
-    the result validated. Missing fields take their defaults (not the presets)."""
+    the result validated. Missing fields take their defaults (not the presets).
+    """
     if not isinstance(data, Mapping):
         raise ConfigError(f"a configuration must be a JSON object, got {type(data).__name__}")
     flat: dict[str, Any] = {}

@@ -229,7 +229,8 @@ class DynaModel:
 
 def split_indices(buf: ReplayBuffer) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices of the model's training and held-out real transitions, oldest first; steps that blew up
-    (whose stored next state is the pre-step state) are in neither."""
+    (whose stored next state is the pre-step state) are in neither.
+    """
     n = len(buf)
     age = (torch.arange(n) - buf.pos) % buf.capacity if n == buf.capacity else torch.arange(n)
     order = torch.argsort(age)
@@ -239,10 +240,13 @@ def split_indices(buf: ReplayBuffer) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class UnlabelledPairs:
-    """State-action pairs for the physics loss, which needs no label: real training states with actions of
-    the current policy (exploration noise included) and, once imagination has begun, the imagined buffer's
-    pairs - half and half. The physics loss thus shapes the model from its first phase on, before the
-    model is accurate enough to be used. Actions and their noise come from the ``physics_states`` stream."""
+    """State-action pairs for the physics loss, which needs no label.
+
+    Real training states with actions of the current policy (exploration noise included) and, once
+    imagination has begun, the imagined buffer's pairs - half and half. The physics loss joins once D^r
+    and D^f together hold ``n_sR`` transitions, so it can shape the model before the model is accurate
+    enough to be used. Actions and their noise come from the ``physics_states`` stream.
+    """
 
     def __init__(
         self,

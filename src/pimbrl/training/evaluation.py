@@ -44,7 +44,7 @@ class EvalResult:
             "return_max": float(r.max()),
             "return_std": float(r.std()),
             "length_mean": float(self.lengths.mean()),
-            "episodes": int(len(r)),
+            "episodes": len(r),
         }
 
 

@@ -130,7 +130,8 @@ class RunLogger:
 
     def metrics(self, t: int, counters: Mapping[str, Any]) -> None:
         """One row of ``metrics.csv``: ``counters`` (episodes, updates, buffer sizes, model state), the means
-        of the accumulated update metrics, the speed since the last row and the phase timings."""
+        of the accumulated update metrics, the speed since the last row and the phase timings.
+        """
         now = time.perf_counter()
         sps = (t - self._tick[0]) / max(now - self._tick[1], 1e-9)
         self._tick = (t, now)

@@ -195,7 +195,8 @@ class RunDirectory:
 
     def result(self, threshold: float | None = None) -> dict[str, Any] | None:
         """What a run has reached so far (``None`` without evaluations): steps, steps to ``threshold``
-        (default: the run's own), final and best mean test return, wall-clock, updates and its curves."""
+        (default: the run's own), final and best mean test return, wall-clock, updates and its curves.
+        """
         if self.status is None:
             return None
         rows = self.evaluations.read()
