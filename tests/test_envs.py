@@ -46,7 +46,7 @@ def test_vector_step_equals_stacked_single_steps(env_id: str, ks_states: np.ndar
     for _ in range(steps):
         acts = _actions(single[0].action_space, rng, n)
         results = [env.step(a) for env, a in zip(single, acts)]
-        obs_vec, rew_vec, term_vec, trunc_vec, _ = vec.step(np.stack(acts))
+        obs_vec, rew_vec, term_vec, _trunc_vec, _ = vec.step(np.stack(acts))
         np.testing.assert_array_equal(obs_vec, np.stack([r[0] for r in results]))
         np.testing.assert_array_equal(rew_vec, np.array([r[1] for r in results]))
         np.testing.assert_array_equal(term_vec, np.array([r[2] for r in results]))
@@ -80,7 +80,7 @@ def test_cartpole_matches_gymnasium() -> None:
     ref = gym.make("CartPole-v0").unwrapped
     rng = np.random.default_rng(1)
     for episode in range(5):
-        obs, _ = ours.reset(seed=episode)
+        _obs, _ = ours.reset(seed=episode)
         ref.reset(seed=episode)
         ref.state = ours.unwrapped.state.copy()
         while True:
@@ -149,7 +149,7 @@ def test_nan_action_is_a_clear_error(env_id: str, ks_states: np.ndarray) -> None
 def test_cartpole_rejects_invalid_actions() -> None:
     env = gym.make("pimbrl/CartPole-v0")
     env.reset(seed=0)
-    with pytest.raises(ValueError, match="0 .push left. or 1"):
+    with pytest.raises(ValueError, match=r"0 \(push left\) or 1"):
         env.unwrapped.step(2)
     with pytest.raises(ValueError, match="NaN"):
         env.unwrapped.step(np.nan)

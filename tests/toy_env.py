@@ -12,7 +12,7 @@ from gymnasium import spaces
 
 
 class ReachEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": []}  # noqa: RUF012 - Gymnasium declares it as an attribute
 
     def __init__(self, discrete: bool = False) -> None:
         self.observation_space = spaces.Box(-1.0, 1.0, (2,), np.float32)

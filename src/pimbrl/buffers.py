@@ -103,8 +103,10 @@ class Transitions:
 
 
 def physics_extras(state_dim: int, action_dim: int) -> dict[str, tuple[int, ...]]:
-    """Buffer extras of a model-based run: the physical fields, plus per-transition flags ``holdout``
-    (kept out of model training to measure its accuracy) and ``valid`` (0 where the step blew up).
+    """Buffer extras of a model-based run: the physical fields plus two per-transition flags.
+
+    The flags are ``holdout`` (kept out of model training to measure its accuracy) and ``valid``
+    (0 where the step blew up).
     """
     return {
         "state": (state_dim,),
@@ -194,13 +196,15 @@ class ReplayBuffer:
         self.total_added += n
 
     def add_transitions(self, tr: Transitions, **flags: np.ndarray) -> None:
-        """Store :class:`Transitions`; a buffer with physical extras stores their physical fields too, and
+        """Store :class:`Transitions`, with their physical fields where the buffer has physical extras.
+
         ``flags`` (e.g. ``holdout``, ``valid``) fill the remaining extras.
         """
         extras = {**(tr.physics() if self.extras else {}), **flags}
         self.add(tr.obs, tr.action, tr.reward, tr.next_obs, tr.terminated, tr.truncated, **extras)
 
     def sample_indices(self, batch_size: int, rng: np.random.Generator) -> torch.Tensor:
+        """``batch_size`` indices of stored transitions, uniform with replacement; ``ValueError`` if the buffer is empty."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         return torch.from_numpy(rng.integers(0, self.size, size=batch_size))
@@ -210,6 +214,7 @@ class ReplayBuffer:
         return self.gather(self.sample_indices(batch_size, rng))
 
     def gather(self, idx: torch.Tensor) -> Batch:
+        """The transitions at indices ``idx`` as a :class:`Batch` (extras not included)."""
         return Batch(
             self.obs.index_select(0, idx),
             self.action.index_select(0, idx),
@@ -220,6 +225,7 @@ class ReplayBuffer:
         )
 
     def extra(self, name: str, idx: torch.Tensor) -> torch.Tensor:
+        """The extra field ``name`` (e.g. ``state``, ``holdout``) at indices ``idx``."""
         return self.extras[name].index_select(0, idx)
 
     # ------------------------------------------------------------------ checkpointing
@@ -246,6 +252,7 @@ class ReplayBuffer:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore contents and counters from :meth:`state_dict`; the capacity must match."""
         if state["capacity"] != self.capacity:
             raise ValueError(f"checkpointed buffer capacity {state['capacity']} differs from {self.capacity}")
         n = state["size"]

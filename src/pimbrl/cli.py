@@ -73,8 +73,9 @@ def _flag_of(path: str) -> str:
 
 
 def build_train_config(argv: list[str]):
-    """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run (kept for
-    compatibility: :func:`pimbrl.training.cli_args.config_from_argv`).
+    """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run.
+
+    Kept for compatibility; the implementation is :func:`pimbrl.training.cli_args.config_from_argv`.
     """
     from .training.cli_args import config_from_argv
 
@@ -289,6 +290,7 @@ def _cmd_figure(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``pimbrl`` argument parser with one subcommand per command; each sets ``func`` to its handler."""
     parser = argparse.ArgumentParser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -406,6 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``pimbrl`` command line on ``argv`` (default: ``sys.argv[1:]``) and return the exit status."""
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []

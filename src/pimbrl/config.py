@@ -211,8 +211,9 @@ def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -
 
 
 def _nested_field(cls: type, head: str) -> dataclasses.Field | None:
-    """The nested-dataclass field of ``cls`` addressed by ``head``: its name or its flag prefix
-    (``agent`` for ``TrainConfig.agent_config``).
+    """The nested-dataclass field of ``cls`` addressed by ``head`` (``None`` if there is none).
+
+    ``head`` is the field's name or its flag prefix (``agent`` for ``TrainConfig.agent_config``).
     """
     hints = _field_types(cls)
     for f in dataclasses.fields(cls):
@@ -222,8 +223,9 @@ def _nested_field(cls: type, head: str) -> dataclasses.Field | None:
 
 
 def field_type(cls: type, path: str) -> Any:
-    """The declared type of the field at the dotted ``path`` of ``cls`` (``"agent.gamma"`` -> ``float``);
-    :class:`ConfigError` naming ``path`` where there is no such field.
+    """The declared type of the field at the dotted ``path`` of ``cls`` (``"agent.gamma"`` -> ``float``).
+
+    Raises :class:`ConfigError` naming ``path`` where there is no such field.
     """
     head, _, rest = path.partition(".")
     if rest:

@@ -53,8 +53,10 @@ class SAC(Agent):
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool = False, rng: np.random.Generator | None = None) -> np.ndarray:
-        """A sample of the squashed Gaussian policy (its mean if deterministic); the sample's noise is seeded
-        from ``rng`` if given, else from the agent's exploration stream (never from the update noise).
+        """A sample of the squashed Gaussian policy (its mean if deterministic).
+
+        The sample's noise is seeded from ``rng`` if given, else from the agent's exploration stream
+        (never from the update noise).
         """
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
         generator = None

@@ -69,6 +69,7 @@ class PhysicsEnv(gym.Env):
         return int(self._k[0])
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode from ``options["initial_state"]`` if given, else from a sampled initial state."""
         super().reset(seed=seed)
         options = options or {}
         if options.get("initial_state") is not None:
@@ -79,6 +80,7 @@ class PhysicsEnv(gym.Env):
         return self.task.observe(self._u, self._k)[0], {"diverged": False, "state": self._u[0].copy(), "step_index": 0}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply one action for one control step; ``info`` carries the physical side of the step."""
         if self._u is None:
             raise RuntimeError("call reset() before step()")
         a = self.task.physical_action(action, 1)
@@ -148,6 +150,11 @@ class PhysicsVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset the sub-environments selected by ``options["reset_mask"]`` (default: all).
+
+        They start from ``options["initial_state"]`` (one state for all, or one per sub-environment) if
+        given, else from sampled initial states. A list of seeds uses its first seed.
+        """
         if isinstance(seed, list):
             seed = seed[0] if seed else None
         super().reset(seed=seed)
@@ -175,6 +182,7 @@ class PhysicsVectorEnv(VectorEnv):
         return self.task.observe(self._u, self._k), {}
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Advance all sub-environments by one control step in one batched call, autoresetting per ``autoreset_mode``."""
         if not self._has_reset:
             raise RuntimeError("call reset() before step()")
         a = self.task.physical_action(actions, self.num_envs)

@@ -64,6 +64,7 @@ class Task(ABC):
     # ------------------------------------------------------------------ shared behaviour
     @property
     def state_dim(self) -> int:
+        """Length of the physical state vector."""
         return self.physics.state_dim
 
     def check_initial_state(self, state: Any) -> np.ndarray:
@@ -78,8 +79,9 @@ class Task(ABC):
         return arr
 
     def advance(self, u: np.ndarray, physical_action: np.ndarray, k: np.ndarray) -> StepOutcome:
-        """One control step for a batch (arguments in the order of :meth:`Physics.advance`); blown-up
-        environments keep their pre-step state.
+        """One control step for a batch (arguments in the order of :meth:`Physics.advance`).
+
+        Blown-up environments keep their pre-step state, are terminated and get the divergence penalty.
         """
         u_next, reward = self.physics.advance(u, physical_action, k)
         reward = np.asarray(reward, dtype=np.float64) + np.zeros(len(u))

@@ -200,8 +200,10 @@ def summarize_method(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    """Ratio of the mean steps to the threshold, a/b. Where some runs of b never reached the threshold,
-    they count at their budget, which makes the ratio an upper bound.
+    """Ratio of the mean steps to the threshold, a/b.
+
+    Where some runs of b never reached the threshold, they count at their budget, which makes the ratio
+    an upper bound.
     """
     if a["steps_to_threshold_mean"] is None:
         return {"value": None, "note": "pimbrl did not reach the threshold on every seed"}
@@ -250,8 +252,10 @@ def compare(
     log: Callable[[str], None] = print,
     run: bool = True,
 ) -> dict[str, Any]:
-    """Run (what is missing of) a comparison and write its figure and tables; with ``run=False`` start
-    nothing and summarise the runs as they stand (unfinished ones up to their last evaluation).
+    """Run (what is missing of) a comparison and write its figure and tables.
+
+    With ``run=False`` nothing is started: the runs are summarised as they stand (unfinished ones up to
+    their last evaluation).
 
     ``overrides``: field paths -> values (``{"total_steps": 5000, "dyna.model_steps": 5}``; a list of
     `pimbrl train` flags is read as such), applied to the runs they fit (see :func:`plan_runs`).

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from .. import training
+from ..envs import PhysicsEnv
 from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 from ..training import Run
@@ -47,14 +48,25 @@ def _test_states(trainer: Run, n: int) -> np.ndarray:
     return trainer.task.test_initial_states(n, trainer.cfg.eval_seed)
 
 
+def _make_env(trainer: Run) -> tuple[gym.Env, Any, gym.spaces.Box]:
+    """A fresh single environment of the run's task, its physics and its (continuous) action space."""
+    env = gym.make(trainer.cfg.env, **trainer.cfg.env_kwargs)
+    unwrapped = env.unwrapped
+    if not isinstance(unwrapped, PhysicsEnv):
+        raise TypeError(f"{trainer.cfg.env} is not a pimbrl environment")
+    space = env.action_space
+    if not isinstance(space, gym.spaces.Box):
+        raise TypeError(f"{trainer.cfg.env} has a {type(space).__name__} action space; this figure needs a Box")
+    return env, unwrapped.physics, space
+
+
 def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Path:
     """Space-time contours of an uncontrolled and ``controlled`` agent-controlled KS test episodes."""
     trainer = load_run(run_dir)
-    env = gym.make(trainer.cfg.env, **trainer.cfg.env_kwargs)
-    physics = env.unwrapped.physics
+    env, physics, space = _make_env(trainer)
     states = _test_states(trainer, controlled + 1)
     records: list[tuple[str, EpisodeRecord]] = []
-    zero = np.zeros(env.action_space.shape, np.float32)
+    zero = np.zeros(space.shape, np.float32)
     records.append(("uncontrolled", run_episode(env, lambda o: zero, options={"initial_state": states[0]})))
     policy = _policy(trainer)
     for i in range(1, controlled + 1):
@@ -71,11 +83,9 @@ def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Pa
 def burgers_episodes(run_dir: str | Path, out: str | Path, seed: int = 0) -> Path:
     """Burgers: the state surface and the actions and rewards of a random-action and a controlled episode."""
     trainer = load_run(run_dir)
-    env = gym.make(trainer.cfg.env, **trainer.cfg.env_kwargs)
-    physics = env.unwrapped.physics
+    env, physics, space = _make_env(trainer)
     start = _test_states(trainer, 1)[0]
     rng = np.random.default_rng(seed)
-    space = env.action_space
     random_rec = run_episode(
         env, lambda o: rng.uniform(space.low, space.high).astype(np.float32), options={"initial_state": start}
     )

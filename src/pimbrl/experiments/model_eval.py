@@ -28,7 +28,7 @@ import torch
 
 from ..config import non_negative, param, positive, validate
 from ..envs import PhysicsEnv, Task
-from ..models import ModelTrainer, PhysicsResidual, TransitionData, make_model
+from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.residual import Scheme
 from ..training.rundir import atomic_write_bytes
 
@@ -71,8 +71,10 @@ CARTPOLE_WIDE_BOX = np.array([2.0, 2.0, 0.18, 2.0])
 
 
 def _ks_forced_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """KS test-pool states driven by the strongest alternating actuation (+max, -max, ...) for
-    :data:`KS_FORCING_STEPS` control steps: far from the chaotic set.
+    """KS test-pool states driven far from the chaotic set.
+
+    The drive is the strongest alternating actuation (+max, -max, ...) for :data:`KS_FORCING_STEPS`
+    control steps.
     """
     phys = task.physics
     pool = task.test_initial_states(task.test_pool_size, seed=0)  # type: ignore[attr-defined]  # KSTask
@@ -114,7 +116,9 @@ def _random_env_actions(task: Task, rng: np.random.Generator, n: int) -> Any:
     space = task.action_space
     if isinstance(space, gym.spaces.Discrete):
         return rng.integers(space.n, size=n) + int(space.start)
-    return rng.uniform(space.low, space.high, size=(n, *space.shape)).astype(space.dtype)
+    if isinstance(space, gym.spaces.Box):
+        return rng.uniform(space.low, space.high, size=(n, *space.shape)).astype(space.dtype)
+    raise TypeError(f"random actions need a Discrete or Box action space, got {space}")
 
 
 def collect_transitions(
@@ -151,7 +155,7 @@ def collect_transitions(
 
 
 def _imagined_states(
-    model: torch.nn.Module, task: Task, seeds: TransitionData, length: int, rng: np.random.Generator
+    model: TransitionModel, task: Task, seeds: TransitionData, length: int, rng: np.random.Generator
 ) -> torch.Tensor:
     """States the model reaches from ``seeds`` in up to ``length`` steps under random actions."""
     out = [seeds.state]

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import sys
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -60,8 +61,10 @@ _OWN = {"env": "envs", "method": "methods", "seed": "seeds"}
 
 @dataclass(frozen=True)
 class SweepSpec:
-    """A sweep: ``grid`` maps field paths to the values to try, ``overrides`` fields to set in every trial
-    (both typed: see :func:`~pimbrl.training.config.typed_overrides`).
+    """A sweep: environments, methods and seeds crossed with a grid of settings.
+
+    ``grid`` maps field paths to the values to try, ``overrides`` fields to set in every trial (both
+    typed: see :func:`~pimbrl.training.config.typed_overrides`).
     """
 
     name: str
@@ -75,6 +78,8 @@ class SweepSpec:
 
 @dataclass(frozen=True)
 class Trial:
+    """One run of a sweep: an environment, a method, a seed and one setting of the grid."""
+
     env: str
     method: str
     seed: int
@@ -84,10 +89,12 @@ class Trial:
 
     @property
     def setting(self) -> str:
+        """The setting's grid values as ``"key=value,..."`` (``"default"`` for an empty grid)."""
         return ",".join(f"{k}={v}" for k, v in self.params) or "default"
 
     @property
     def label(self) -> str:
+        """A short name for logs: environment, method and setting."""
         return f"{self.env.split('/')[-1]} {self.method} {self.setting}"
 
 
@@ -101,11 +108,12 @@ def load_sweep(path: str | Path) -> SweepSpec:
         raise FileNotFoundError(f"sweep file {path} does not exist")
     text = path.read_text()
     if path.suffix == ".toml":
-        try:
+        if sys.version_info >= (3, 11):
             import tomllib
-        except ImportError:  # pragma: no cover - Python 3.10
-            raise ConfigError(f"{path}: TOML sweep files need Python >= 3.11; use JSON") from None
-        data = tomllib.loads(text)
+
+            data = tomllib.loads(text)
+        else:  # pragma: no cover - Python 3.10 has no tomllib
+            raise ConfigError(f"{path}: TOML sweep files need Python >= 3.11; use JSON")
     else:
         try:
             data = json.loads(text)
@@ -174,8 +182,9 @@ def load_sweep(path: str | Path) -> SweepSpec:
 
 
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
-    """Every trial of ``spec`` with its resolved configuration; :class:`ConfigError` for any that is
-    invalid (before anything runs).
+    """Every trial of ``spec`` with its resolved configuration.
+
+    Raises :class:`ConfigError` for any trial that is invalid, before anything runs.
     """
     from ..simulate import resolve_env_id
 
@@ -233,6 +242,7 @@ def execute_trial(trial: Trial) -> dict[str, Any]:
 
 
 def ray_available() -> bool:
+    """Whether Ray can be imported; a sweep runs its trials on Ray by default when it can."""
     try:
         import ray  # noqa: F401
     except ImportError:
@@ -312,7 +322,8 @@ def _run_on_ray(
 
 def aggregate(spec: SweepSpec, trials: Sequence[Trial]) -> dict[str, Any]:
     """One row per trial that has evaluations, and the curves of every setting (for means over seeds)."""
-    rows, curves = [], {}
+    rows: list[dict[str, Any]] = []
+    curves: dict[tuple[str, str, str], list[dict[str, list[float]]]] = {}
     for t in trials:
         result = RunDirectory(t.path).result(spec.threshold)
         if result is None:

@@ -24,8 +24,10 @@ __all__ = ["add_train_flags", "config_from_argv", "overrides_from_namespace", "p
 
 
 def add_train_flags(parser: argparse.ArgumentParser) -> None:
-    """Add the configuration flags of ``pimbrl train`` to ``parser``: ``--steps``, ``--env-kwargs`` and
-    one flag per field (defaults unset, so that only the flags given override a preset).
+    """Add the configuration flags of ``pimbrl train`` to ``parser``.
+
+    These are ``--steps``, ``--env-kwargs`` and one flag per field (defaults unset, so that only the
+    flags given override a preset).
     """
     parser.add_argument("--steps", type=int, default=None, help="real environment steps (alias of --total-steps)")
     parser.add_argument(
@@ -37,8 +39,9 @@ def add_train_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def overrides_from_namespace(args: argparse.Namespace) -> dict[str, Any]:
-    """The configuration flags given in ``args`` (parsed with :func:`add_train_flags`) as overrides:
-    ``{"total_steps": 200, "agent.gamma": 0.9, ...}``.
+    """The configuration flags given in ``args`` (parsed with :func:`add_train_flags`) as overrides.
+
+    For example ``{"total_steps": 200, "agent.gamma": 0.9, ...}``.
     """
     overrides = overrides_from_args(args, TrainConfig)
     overrides.pop("env", None)  # the positional environment, not a flag
@@ -80,9 +83,11 @@ def _parse(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Nam
 
 
 def parse_train_args(argv: Sequence[str]) -> dict[str, Any]:
-    """Typed overrides from `pimbrl train` flags (no environment), e.g. ``["--steps", "200",
-    "--agent.gamma", "0.9"]`` -> ``{"total_steps": 200, "agent.gamma": 0.9}`` (``--quiet`` is accepted
-    and ignored); :class:`ConfigError` with the parser's message for arguments it cannot read.
+    """Typed overrides from `pimbrl train` flags (no environment).
+
+    For example ``["--steps", "200", "--agent.gamma", "0.9"]`` -> ``{"total_steps": 200, "agent.gamma": 0.9}``
+    (``--quiet`` is accepted and ignored). Raises :class:`ConfigError` with the parser's message for
+    arguments it cannot read.
     """
     return overrides_from_namespace(_parse(_parser(positional_env=False), argv))
 

@@ -108,7 +108,9 @@ class TrainConfig:
     log_every: int = param(1_000, "real steps between rows of metrics.csv", positive())
     threads: int = param(1, "torch threads for this run", in_range(1, 256))
     tensorboard: bool = param(False, "also write TensorBoard events (needs the tensorboard package)")
-    env_kwargs: dict = param({}, "keyword arguments for gymnasium.make")
+    env_kwargs: dict = dataclasses.field(
+        default_factory=dict, metadata={"help": "keyword arguments for gymnasium.make", "check": None}
+    )
     agent_config: AgentConfig = dataclasses.field(
         default_factory=AgentConfig, metadata={"help": "agent hyperparameters (flags --agent.<name>)", "prefix": "agent"}
     )
@@ -200,8 +202,10 @@ def _flag(path: str) -> str:
 
 @functools.cache
 def is_pde_env(env: str) -> bool:
-    """Whether ``env`` is a pimbrl environment whose physics is a PDE (:class:`~pimbrl.physics.pde.SemilinearPDE`:
-    Burgers, Kuramoto-Sivashinsky); ``False`` for the ODE systems and for any other Gymnasium id.
+    """Whether ``env`` is a pimbrl environment whose physics is a PDE.
+
+    That is a :class:`~pimbrl.physics.pde.SemilinearPDE` (Burgers, Kuramoto-Sivashinsky); ``False`` for
+    the ODE systems and for any other Gymnasium id.
     """
     import gymnasium as gym
 
@@ -224,8 +228,10 @@ def is_pde_env(env: str) -> bool:
 
 
 def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | None:
-    """Why the field ``path`` (``"dyna.rollout_length"``, ``"agent.init_alpha"``, ...) does nothing for a
-    run of ``method`` with ``agent`` on ``env``; ``None`` where it applies.
+    """Why the field ``path`` does nothing for a run of ``method`` with ``agent`` on ``env``.
+
+    ``path`` is a dotted field path (``"dyna.rollout_length"``, ``"agent.init_alpha"``, ...). Returns
+    ``None`` where the field applies.
     """
     section, _, name = path.rpartition(".")
     flag = _flag(path)
@@ -250,8 +256,10 @@ def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | N
 
 
 def typed_overrides(overrides: Mapping[str, Any]) -> dict[str, Any]:
-    """``overrides`` (dotted field paths -> values) with every path checked to be a field of
-    :class:`TrainConfig` and every value against that field's type (:func:`pimbrl.config.typed_value`).
+    """``overrides`` (dotted field paths -> values), checked and typed.
+
+    Every path is checked to be a field of :class:`TrainConfig` and every value against that field's
+    type (:func:`pimbrl.config.typed_value`).
     """
     out = {}
     for path, value in overrides.items():
@@ -269,8 +277,9 @@ def resolve_config(
     agent_overrides: Mapping[str, Any] | None = None,
     dyna_overrides: Mapping[str, Any] | None = None,
 ) -> TrainConfig:
-    """Defaults, then the preset of ``env`` (its model-free part, plus its model-based part for mbrl and
-    pimbrl), then the overrides; validated.
+    """The run's configuration: defaults, then the preset of ``env``, then the overrides; validated.
+
+    The preset contributes its model-free part, plus its model-based part for mbrl and pimbrl.
 
     ``overrides`` maps field paths to values: ``"utd"``, ``"agent.gamma"``, ``"dyna.rollout_length"``
     (``agent_overrides`` and ``dyna_overrides``, by field name, are the same as ``agent.``/``dyna.``
@@ -310,9 +319,11 @@ def resolve_config(
 
 
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
-    """A :class:`TrainConfig` from a whole configuration as :func:`pimbrl.config.to_dict` writes it (the
-    ``config`` of a run's ``config.json``, or ``pimbrl train --print-config``); every value type-checked,
-    the result validated. Missing fields take their defaults (not the presets).
+    """A :class:`TrainConfig` from a whole configuration as :func:`pimbrl.config.to_dict` writes it.
+
+    That is the ``config`` of a run's ``config.json``, or the output of ``pimbrl train --print-config``.
+    Every value is type-checked and the result validated. Missing fields take their defaults (not the
+    presets).
     """
     if not isinstance(data, Mapping):
         raise ConfigError(f"a configuration must be a JSON object, got {type(data).__name__}")

@@ -49,7 +49,7 @@ def agent_batch(
     """The agent's training batch: all real, or ``real_ratio`` real and the rest imagined."""
     if imagined is None or len(imagined) == 0:
         return real.sample(size, rng)
-    n_real = int(round(size * real_ratio))
+    n_real = round(size * real_ratio)
     parts = [real.sample(n_real, rng)] if n_real else []
     if size - n_real:
         parts.append(imagined.sample(size - n_real, rng))
@@ -155,7 +155,7 @@ class DynaModel:
         """Roll the model from sampled start states and store the imagined transitions in D^f."""
         d = self.cfg.dyna
         rng = self.streams.imagination
-        n_img = int(round(n_rollouts * d.imagined_start_fraction)) if len(self.imagined) else 0
+        n_img = round(n_rollouts * d.imagined_start_fraction) if len(self.imagined) else 0
         starts = [real.sample_indices(n_rollouts - n_img, rng)]
         states = [real.extra("state", starts[0])]
         ks = [real.extra("k", starts[0])]
@@ -228,8 +228,9 @@ class DynaModel:
 
 
 def split_indices(buf: ReplayBuffer) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices of the model's training and held-out real transitions, oldest first; steps that blew up
-    (whose stored next state is the pre-step state) are in neither.
+    """Indices of the model's training and held-out real transitions, oldest first.
+
+    Steps that blew up (whose stored next state is the pre-step state) are in neither.
     """
     n = len(buf)
     age = (torch.arange(n) - buf.pos) % buf.capacity if n == buf.capacity else torch.arange(n)

@@ -29,14 +29,18 @@ Policy = Callable[[np.ndarray], np.ndarray]  # batched observations -> normalise
 
 @dataclass(frozen=True)
 class EvalResult:
+    """Returns and lengths of the test episodes of one evaluation."""
+
     returns: np.ndarray  # (episodes,)
     lengths: np.ndarray  # (episodes,)
 
     @property
     def mean(self) -> float:
+        """Mean return over the episodes."""
         return float(self.returns.mean())
 
     def summary(self) -> dict[str, float]:
+        """Mean, min, max and standard deviation of the returns, mean length and number of episodes."""
         r = self.returns
         return {
             "return_mean": float(r.mean()),
@@ -72,6 +76,7 @@ class Evaluator:
             self.env = probe
 
     def run(self, policy: Policy) -> EvalResult:
+        """Run the test episodes with ``policy``, all at once on a pimbrl vector env, else one after another."""
         return self._run_vector(policy) if self.native else self._run_sequential(policy)
 
     def _run_vector(self, policy: Policy) -> EvalResult:

@@ -129,8 +129,10 @@ class RunLogger:
         self._scalars(t, {"train/episode_return": episode_return})
 
     def metrics(self, t: int, counters: Mapping[str, Any]) -> None:
-        """One row of ``metrics.csv``: ``counters`` (episodes, updates, buffer sizes, model state), the means
-        of the accumulated update metrics, the speed since the last row and the phase timings.
+        """Write one row of ``metrics.csv`` (and the scalars, where TensorBoard is on) and reset the sums.
+
+        The row holds ``counters`` (episodes, updates, buffer sizes, model state), the means of the
+        accumulated update metrics, the speed since the last row and the phase timings.
         """
         now = time.perf_counter()
         sps = (t - self._tick[0]) / max(now - self._tick[1], 1e-9)

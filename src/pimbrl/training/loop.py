@@ -72,7 +72,7 @@ class UpdateSchedule:
     def take(self) -> int:
         """The number of updates of this phase."""
         self.credit += self.per_phase
-        n = int(math.floor(self.credit + 1e-9))
+        n = math.floor(self.credit + 1e-9)
         self.credit -= n
         return n
 

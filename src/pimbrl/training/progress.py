@@ -35,6 +35,7 @@ class TrainingProgress:
             self._progress.start()
 
     def update(self, step: int, sps: float | None = None, eval_return: float | None = None) -> None:
+        """Move the bar to ``step`` and show the speed and last evaluation return if given (no-op without a bar)."""
         if self._progress is None:
             return
         fields: dict[str, Any] = {}
@@ -54,6 +55,7 @@ class TrainingProgress:
             print(text, file=sys.stderr, flush=True)
 
     def close(self) -> None:
+        """Stop the bar, if there is one."""
         if self._progress is not None:
             self._progress.stop()
             self._progress = None

@@ -24,7 +24,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
@@ -68,6 +68,7 @@ def steps_to_threshold(evaluations: list[dict[str, Any]], threshold: float | Non
 
 
 def package_versions() -> dict[str, str]:
+    """Versions of Python, pimbrl and its main dependencies, recorded in a run's configuration file."""
     import gymnasium
     import numba
     import numpy
@@ -102,6 +103,7 @@ class CsvLog:
         return self._fh
 
     def append(self, row: dict[str, Any]) -> None:
+        """Write one row (its keys outside the header are ignored, missing ones left empty) and flush."""
         fh = self._open()
         writer = csv.DictWriter(fh, fieldnames=self.columns, extrasaction="ignore", lineterminator="\n")
         writer.writerow({k: _fmt(row.get(k)) for k in self.columns})
@@ -131,12 +133,14 @@ class CsvLog:
         atomic_write_bytes(self.path, ("\n".join(kept) + "\n").encode())
 
     def read(self) -> list[dict[str, str]]:
+        """All rows as dictionaries of strings (none if the file does not exist)."""
         if not self.path.exists():
             return []
         with open(self.path, newline="") as fh:
             return list(csv.DictReader(fh))
 
     def close(self) -> None:
+        """Close the file if it is open (a later append reopens it)."""
         if self._fh is not None:
             self._fh.close()
             self._fh = None
@@ -155,7 +159,7 @@ def _fmt(v: Any) -> str:
 class RunDirectory:
     """A training run's directory (see the module docstring for its layout)."""
 
-    EVAL_COLUMNS = [
+    EVAL_COLUMNS: ClassVar[list[str]] = [
         "step",
         "return_mean",
         "return_min",
@@ -166,7 +170,7 @@ class RunDirectory:
         "updates",
         "wall_s",
     ]
-    EPISODE_COLUMNS = ["step", "episode", "return", "length"]
+    EPISODE_COLUMNS: ClassVar[list[str]] = ["step", "episode", "return", "length"]
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
@@ -178,9 +182,11 @@ class RunDirectory:
 
     # ------------------------------------------------------------------ config
     def write_config(self, payload: dict[str, Any]) -> None:
+        """Write ``config.json`` atomically."""
         atomic_write_bytes(self.config_path, (json.dumps(payload, indent=2, sort_keys=False) + "\n").encode())
 
     def read_config(self) -> dict[str, Any]:
+        """The contents of ``config.json``; ``FileNotFoundError`` if this is not a run directory."""
         if not self.config_path.exists():
             raise FileNotFoundError(f"{self.path} is not a pimbrl run directory (no config.json)")
         return json.loads(self.config_path.read_text())
@@ -194,8 +200,10 @@ class RunDirectory:
             return None
 
     def result(self, threshold: float | None = None) -> dict[str, Any] | None:
-        """What a run has reached so far (``None`` without evaluations): steps, steps to ``threshold``
-        (default: the run's own), final and best mean test return, wall-clock, updates and its curves.
+        """What a run has reached so far (``None`` without evaluations).
+
+        That is its steps, steps to ``threshold`` (default: the run's own), final and best mean test
+        return, wall-clock, updates and its curves.
         """
         if self.status is None:
             return None
@@ -221,6 +229,7 @@ class RunDirectory:
         }
 
     def update_status(self, **fields: Any) -> None:
+        """Set top-level ``fields`` of ``config.json`` (e.g. ``status``), keeping the rest."""
         payload = self.read_config()
         payload.update(fields)
         self.write_config(payload)
@@ -237,6 +246,7 @@ class RunDirectory:
         return self._metrics
 
     def truncate_logs(self, step: int) -> None:
+        """Drop the rows of every log after ``step`` (used when resuming from a checkpoint)."""
         for log in (self.evaluations, self.episodes):
             log.truncate_after(step)
         path = self.path / "metrics.csv"
@@ -244,17 +254,20 @@ class RunDirectory:
             self.metrics([]).truncate_after(step)
 
     def close(self) -> None:
+        """Close the open log files."""
         for log in (self.evaluations, self.episodes, self._metrics):
             if log is not None:
                 log.close()
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, state: dict[str, Any]) -> None:
+        """Write ``state`` with the checkpoint format version to ``checkpoints/latest.pt`` atomically."""
         buf = io.BytesIO()
         torch.save({"version": CHECKPOINT_VERSION, **state}, buf)
         atomic_write_bytes(self.checkpoint_path, buf.getvalue())
 
     def load_checkpoint(self) -> dict[str, Any]:
+        """The latest checkpoint; ``FileNotFoundError`` if there is none, ``ValueError`` if its version differs."""
         if not self.checkpoint_path.exists():
             raise FileNotFoundError(f"no checkpoint in {self.path} (expected {self.checkpoint_path})")
         state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
