@@ -180,6 +180,12 @@ def _cmd_model_eval(args: argparse.Namespace) -> int:
     env_id = resolve_env_id(args.env)
     fields = {**MODEL_EVAL_DEFAULTS.get(env_id, {}), **overrides_from_args(args, ModelEvalConfig)}
     cfg = dataclasses.replace(ModelEvalConfig(), **fields)
+    if cfg.labels:  # the study: errors against the number of labelled transitions
+        from .experiments.model_study import run_model_study
+
+        run_model_study(env_id, args.run_dir, cfg, log=lambda m: print(m, flush=True))
+        print(f"wrote {Path(args.run_dir) / 'study.csv'}, study.json and study.png")
+        return 0
     run_model_eval(env_id, args.run_dir, cfg, log=lambda m: print(m, flush=True))
     print(f"wrote {Path(args.run_dir) / 'model_errors.csv'}, summary.json and model_errors.png")
     return 0

@@ -53,6 +53,22 @@ class ModelEvalConfig:
     refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", positive())
     seed: int = param(0, "seed of data collection, initialisation and batches", non_negative())
     threads: int = param(1, "torch threads", positive())
+    # the study (pimbrl.experiments.model_study): used when ``labels`` is given
+    labels: tuple[int, ...] = param((), "study: numbers of labelled transitions to compare, e.g. 0,100,300,1000")
+    seeds: int = param(1, "study: seeds (seed, seed + 1, ...)", positive())
+    seed_states: int = param(500, "study: observed states the physics loss may start from without labels", positive())
+    sources: str = param("train,imagined", "physics-loss sources: train, imagined, symmetry, scaled, noise, box")
+    units: str = param(
+        "substep",
+        "units of the physics loss: substep or step",
+        (lambda v: v in ("substep", "step"), "must be 'substep' or 'step'"),
+    )
+    model: str = param(
+        "convlstm",
+        "PDE model: convlstm or equivariant",
+        (lambda v: v in ("convlstm", "equivariant"), "must be 'convlstm' or 'equivariant'"),
+    )
+    rollout_lengths: tuple[int, ...] = param((1,), "study: chained model steps at which the error is measured, e.g. 1,3,8")
 
 
 DEFAULTS: dict[str, dict[str, Any]] = {

@@ -38,16 +38,25 @@ class ModelEnv:
         adapter: maps normalised agent actions to environment actions.
         rng: draws the stochastic ``Discrete(2)`` action mapping during imagination (as in training); the
             training loop gives it the imagination stream, never the real environment's.
+        use_path: rewards that integrate over a control step (KS) use the model's intermediate states;
+            ``False``: the step's two endpoints only, the same rule for a model whose intermediate states
+            were never trained (data-only) as for one whose were (physics-informed).
     """
 
     def __init__(
-        self, model: TransitionModel, task: Task, adapter: ActionAdapter, rng: np.random.Generator | None = None
+        self,
+        model: TransitionModel,
+        task: Task,
+        adapter: ActionAdapter,
+        rng: np.random.Generator | None = None,
+        use_path: bool = True,
     ) -> None:
         self.model = model
         self.task = task
         self.physics = task.physics
         self.adapter = adapter
         self.rng = rng  # samples stochastic action mappings (Discrete(2)), as in the real environment
+        self.use_path = use_path
         self.model_calls = 0
 
     @torch.no_grad()
@@ -65,7 +74,8 @@ class ModelEnv:
         nxt = path_np[:, -1]
         valid = ~self.physics.diverged(nxt)
         # states at the start of each of the model's sub-steps: u_t, v_1, ..., v_{N-1}
-        starts = np.concatenate([state[:, None, :], path_np[:, :-1]], axis=1) if path_np.shape[1] > 1 else None
+        multi = path_np.shape[1] > 1 and self.use_path
+        starts = np.concatenate([state[:, None, :], path_np[:, :-1]], axis=1) if multi else None
         with np.errstate(all="ignore"):
             reward = np.asarray(self.physics.reward(state, phys_a, nxt, k, starts), dtype=np.float64) + np.zeros(len(state))
             terminated = np.asarray(self.physics.terminated(nxt), dtype=bool)

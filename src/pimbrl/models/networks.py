@@ -20,7 +20,7 @@ from torch import nn
 from ..physics import Physics
 from ..physics.pde import SemilinearPDE
 
-__all__ = ["ConvLSTMModel", "MLPModel", "TransitionModel", "make_model"]
+__all__ = ["MODELS", "ConvLSTMModel", "EquivariantConvModel", "MLPModel", "TransitionModel", "make_model"]
 
 
 class TransitionModel(nn.Module):
@@ -86,7 +86,8 @@ class MLPModel(TransitionModel):
     """``u_{t+1} = canonical(u_t + delta_std * MLP(normalised u_t, scaled a_t))`` (or the absolute state).
 
     ``canonical`` is the physics' state map (it wraps the pendulum's angle), so increments never see the
-    jump at +-pi.
+    jump at +-pi; ``constrain`` its hard constraints (the pendulum's speed limit), which a prediction then
+    cannot violate.
     """
 
     def __init__(self, physics: Physics, hidden: Sequence[int] = (256, 256), predict_increment: bool = True) -> None:
@@ -104,16 +105,16 @@ class MLPModel(TransitionModel):
         """The next state as ``(B, 1, state_dim)``: a single "intermediate" state."""
         out = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1))
         nxt = u + out * self.delta_std if self.predict_increment else out * self.state_std + self.state_mean
-        return self.physics.canonical(nxt)[:, None, :]
+        return self.physics.constrain(self.physics.canonical(nxt))[:, None, :]
 
 
 class CircularConv(nn.Module):
     """1-D convolution with periodic (circular) padding: the periodic boundary is built in."""
 
-    def __init__(self, c_in: int, c_out: int, kernel: int, stride: int = 1) -> None:
+    def __init__(self, c_in: int, c_out: int, kernel: int, stride: int = 1, dilation: int = 1) -> None:
         super().__init__()
-        self.pad = kernel // 2
-        self.conv = nn.Conv1d(c_in, c_out, kernel, stride=stride)
+        self.pad = dilation * (kernel // 2)
+        self.conv = nn.Conv1d(c_in, c_out, kernel, stride=stride, dilation=dilation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.conv(nn.functional.pad(x, (self.pad, self.pad), mode="circular"))
@@ -176,10 +177,63 @@ class ConvLSTMModel(TransitionModel):
         return self._decode(u, self._latent_path(u, a)[:, -1:])[:, 0]
 
 
+class EquivariantConvModel(TransitionModel):
+    """A fully convolutional model on the periodic grid: translation-equivariant by construction.
+
+    Input channels: the normalised field and the forcing field of the scaled action (``sum_i a_i g_i(x)``
+    with ``a`` in ``[-1, 1]``), so shifting the state and the actuators together shifts the prediction.
+    Circular convolutions with growing dilation, residual blocks, and an output of ``N`` channels: the
+    increments of the ``N`` intermediate states, ``u_{t+i/N} = u_t + delta_std * out_i``. About 16.6k
+    parameters with the defaults, ten times fewer than :class:`ConvLSTMModel`.
+    """
+
+    def __init__(
+        self,
+        physics: SemilinearPDE,
+        n_intermediate: int = 5,
+        channels: int = 32,
+        kernel: int = 5,
+        dilations: Sequence[int] = (1, 2, 4),
+    ) -> None:
+        super().__init__(physics, per_feature=False)
+        if n_intermediate < 1:
+            raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
+        self.n_intermediate = int(n_intermediate)
+        self.register_buffer("shapes", torch.as_tensor(physics.actuator_shapes, dtype=torch.float32))
+        self.inp = CircularConv(2, channels, kernel)
+        self.blocks = nn.ModuleList(CircularConv(channels, channels, kernel, dilation=d) for d in dilations)
+        self.out = CircularConv(channels, self.n_intermediate, kernel)
+
+    shapes: torch.Tensor
+
+    def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The ``n_intermediate`` predicted fields ``(B, N, n)``; the last is ``u_{t+1}``."""
+        forcing = self.scale_action(a) @ self.shapes  # (B, n): the actuators' field at full scale = 1
+        h = nn.functional.silu(self.inp(torch.stack([self.normalize(u), forcing], dim=1)))
+        for block in self.blocks:
+            h = h + nn.functional.silu(block(h))
+        return u[:, None, :] + self.out(h) * self.delta_std
+
+
+MODELS = ("convlstm", "equivariant")
+
+
 def make_model(
-    physics: Physics, n_intermediate: int = 5, hidden: Sequence[int] = (256, 256), predict_increment: bool = True
+    physics: Physics,
+    n_intermediate: int = 5,
+    hidden: Sequence[int] = (256, 256),
+    predict_increment: bool = True,
+    kind: str = "convlstm",
 ) -> TransitionModel:
-    """The paper's model for ``physics``: ConvLSTM for the PDE systems, MLP for the ODE systems."""
+    """The transition model for ``physics``.
+
+    For the PDE systems the paper's ConvLSTM (``kind="convlstm"``) or the translation-equivariant
+    convolutional model (``kind="equivariant"``); an MLP for the ODE systems.
+    """
     if isinstance(physics, SemilinearPDE):
+        if kind == "equivariant":
+            return EquivariantConvModel(physics, n_intermediate=n_intermediate)
+        if kind != "convlstm":
+            raise ValueError(f"model kind must be one of {', '.join(MODELS)}, got {kind!r}")
         return ConvLSTMModel(physics, n_intermediate=n_intermediate, predict_increment=predict_increment)
     return MLPModel(physics, hidden=hidden, predict_increment=predict_increment)

@@ -104,6 +104,27 @@ class Physics(ABC):
         """``u1 - u0`` in the state's own geometry (systems with angles override this to wrap them)."""
         return u1 - u0
 
+    def constrain(self, u: Array) -> Array:
+        """Project a (predicted) state onto the hard constraints of the dynamics (default: none).
+
+        A learned model applies it to its predictions, so that it cannot leave a set the true dynamics never
+        leave (e.g. the pendulum's speed limit).
+        """
+        return u
+
+    def admissible_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Bounds ``(low, high)`` of the states the task can visit, for label-free physics-loss states.
+
+        ``None`` where no such box is declared (the PDEs: their label-free states come from symmetries and
+        perturbations of observed fields instead).
+        """
+        return None
+
+    #: the equation is invariant under circular shifts of a periodic grid (PDEs on a periodic domain)
+    shift_symmetric: bool = False
+    #: the equation is invariant under the reflection ``u(x) -> -u(-x)`` (odd-symmetric PDEs: Burgers, KS)
+    reflection_symmetric: bool = False
+
     def residual(self, u0: Array, u1: Array, a: Array, substeps: int = 1) -> Array:
         """Residual of the discrete equation between two states ``substeps`` solver steps apart.
 

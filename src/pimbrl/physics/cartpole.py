@@ -74,6 +74,14 @@ class CartPole(Physics):
         """+1 for every step, the terminating one included (Gymnasium's reward)."""
         return 0.0 * u_next[..., 0] + 1.0
 
+    #: speed bounds of :meth:`admissible_box` (cart m/s, pole rad/s): beyond what a balancing episode reaches
+    speed_box = (3.0, 3.5)
+
+    def admissible_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The termination box in position and angle; :attr:`speed_box` in the speeds."""
+        high = np.array([self.x_threshold, self.speed_box[0], self.theta_threshold_radians, self.speed_box[1]])
+        return -high, high
+
     def terminated(self, u: Array) -> Array:
         """The cart leaves ``|x| <= 2.4`` or the pole tilts beyond 12 degrees."""
         x, theta = u[..., 0], u[..., 2]

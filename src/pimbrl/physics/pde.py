@@ -42,6 +42,11 @@ class SemilinearPDE(Physics):
     n: int
     x: np.ndarray
     linear: Stencil
+    # u_t = L u - c (u^2)_x + f on a periodic grid: a circular shift maps solutions to solutions, and so does
+    # u(x) -> -u(-x) (L holds even derivatives only). The forcing is a fixed field, so a shifted or reflected
+    # state is simply another state on which the residual can be evaluated.
+    shift_symmetric = True
+    reflection_symmetric = True
     nonlinear_coef: float
     actuator_shapes: np.ndarray
     method: Literal["euler", "rk4"]

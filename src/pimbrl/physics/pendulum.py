@@ -73,6 +73,15 @@ class Pendulum(Physics):
         xp = xp_of(u)
         return xp.stack([wrap_angle(u[..., 0]), u[..., 1]], -1)
 
+    def constrain(self, u: Array) -> Array:
+        """The speed clipped to ``[-max_speed, max_speed]``, as every solver step clips it."""
+        xp = xp_of(u)
+        return xp.stack([u[..., 0], xp.clip(u[..., 1], -self.max_speed, self.max_speed)], -1)
+
+    def admissible_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Every angle and every speed the solver allows."""
+        return np.array([-np.pi, -self.max_speed]), np.array([np.pi, self.max_speed])
+
     def state_difference(self, u1: Array, u0: Array) -> Array:
         """Difference with the angle wrapped into ``[-pi, pi)``."""
         xp = xp_of(u1)

@@ -84,6 +84,40 @@ class DynaConfig:
     validation_size: int = param(2_000, "most recent held-out transitions used for the accuracy check", positive())
     finetune_return: float | None = param(None, "switch to model-free fine-tuning once the mean test return reaches this")
     finetune_after: int | None = param(None, "switch to model-free fine-tuning after this many real steps")
+    accuracy: str = param(
+        "absolute",
+        "accuracy check: absolute (held-out MSE < threshold, the paper's lambda) or relative (held-out MSE < "
+        "relative_threshold x the MSE of predicting no change on the same transitions)",
+        one_of("absolute", "relative"),
+    )
+    relative_threshold: float = param(
+        0.1, "accuracy=relative: the model is used below this fraction of the no-change error", in_range(0.0, 1.0, lo_open=True)
+    )
+    model: str = param(
+        "convlstm", "PDE model: convlstm (the paper's) or equivariant (fully convolutional)", one_of("convlstm", "equivariant")
+    )
+    physics_sources: str = param(
+        "policy,imagined",
+        "pimbrl: state-action pairs of the physics loss, comma-separated: policy, imagined (the loop's), "
+        "symmetry, scaled, noise (PDEs), box (ODEs); see pimbrl.models.state_sources",
+    )
+    residual_units: str = param(
+        "substep",
+        "pimbrl: units of the physics loss: substep (per sub-step increment) or step (x N^2)",
+        one_of("substep", "step"),
+    )
+    physics_start: int | None = param(
+        None,
+        "pimbrl: real steps after which the model trains on the physics loss alone (before start_model_after; "
+        "normalisation from the equation), so it can be checked and used before it has labels",
+        non_negative(),
+    )
+    reward_quadrature: str = param(
+        "path",
+        "PDEs: imagined rewards from the model's intermediate states (path) or from the step's two endpoints "
+        "(endpoints: the same rule whether the intermediate states were trained or not)",
+        one_of("path", "endpoints"),
+    )
 
 
 @dataclass(frozen=True)
@@ -191,8 +225,8 @@ TD3_ONLY = ("policy_delay", "target_smoothing", "target_noise", "noise_clip")  #
 NOISE_EXPLORATION = ("exploration_noise",)  # TD3, DDPG; SAC samples its stochastic policy
 #: dyna fields that only the physics loss reads (pimbrl) and only the PDE models read. start_physics_after
 #: is read by pimbrl only too, but the shared smoke settings of the tests give it to mbrl runs: not checked
-PIMBRL_ONLY = ("physics_weight", "residual", "start_physics_after")
-PDE_ONLY = ("n_intermediate", "residual")
+PIMBRL_ONLY = ("physics_weight", "residual", "start_physics_after", "physics_sources", "residual_units", "physics_start")
+PDE_ONLY = ("n_intermediate", "residual", "model", "reward_quadrature")
 
 
 def _flag(path: str) -> str:
@@ -243,7 +277,7 @@ def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | N
         if name in PDE_ONLY and not is_pde_env(env):
             return (
                 f"{flag} applies to the PDE environments (Burgers, Kuramoto-Sivashinsky), not {env}: "
-                "an ODE model predicts one state per solver step and its physics residual is the solver's"
+                "an ODE system's model is an MLP that predicts one state per solver step"
             )
     elif section == "agent":
         if name in SAC_ONLY and agent != "sac":

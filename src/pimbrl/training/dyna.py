@@ -33,6 +33,9 @@ from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
 from ..envs import Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
+from ..models.residual import Scheme
+from ..models.state_sources import broad_actions, broad_states, parse_sources
+from ..physics import Physics
 from ..spaces import ActionAdapter
 from .config import TrainConfig
 from .streams import RandomStreams
@@ -78,19 +81,20 @@ class DynaModel:
         d = cfg.dyna
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(streams.integer_seed("model_init"))
-            self.model = make_model(self.physics, n_intermediate=d.n_intermediate)
+            self.model = make_model(self.physics, n_intermediate=d.n_intermediate, kind=d.model)
+        scheme: Scheme = "solver" if d.residual == "solver" else "etd"
         residual = (
-            PhysicsResidual(self.physics, self.model.n_intermediate, "solver" if d.residual == "solver" else "etd")
-            if cfg.method == "pimbrl"
-            else None
+            PhysicsResidual(self.physics, self.model.n_intermediate, scheme, d.residual_units) if cfg.method == "pimbrl" else None
         )
+        self.sources = parse_sources(d.physics_sources, self.physics) if residual is not None else ()
         self.trainer = ModelTrainer(self.model, residual, lr=d.model_lr, weight_physics=d.physics_weight)
         self.extras = physics_extras(self.physics.state_dim, self.physics.action_dim)
         self.imagined = ReplayBuffer(d.imagined_buffer_size, obs_dim, adapter.dim, extras=self.extras)
-        self.model_env = ModelEnv(self.model, task, adapter, streams.imagination)
+        self.model_env = ModelEnv(self.model, task, adapter, streams.imagination, use_path=d.reward_quadrature == "path")
         self.in_use = False
         self.finetuning = False
         self.val_mse = float("inf")
+        self.baseline_mse = float("inf")  # the no-change prediction's error on the same held-out transitions
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
 
@@ -117,14 +121,21 @@ class DynaModel:
             self.in_use = False
             return
         n_real = len(real)
-        if n_real >= d.start_model_after and d.model_steps > 0:
+        with_labels = n_real >= d.start_model_after
+        physics_only = not with_labels and self._physics_only_due(n_real)
+        if (with_labels or physics_only) and d.model_steps > 0:
             train_idx, holdout_idx = split_indices(real)
             with timed("model_train"):
-                labelled = BufferView(real, train_idx)
-                self.trainer.ensure_normalization(labelled.all())  # once: statistics of the first training data
+                labelled = BufferView(real, train_idx) if with_labels else None
                 unlabelled = None
-                if self.trainer.residual is not None and n_real + len(self.imagined) >= d.start_physics_after:
-                    unlabelled = UnlabelledPairs(real, train_idx, self.imagined, self.task, self.adapter, agent, self.streams)
+                if physics_only or (self.trainer.residual is not None and n_real + len(self.imagined) >= d.start_physics_after):
+                    unlabelled = UnlabelledPairs(
+                        real, train_idx, self.imagined, self.task, self.adapter, agent, self.streams, self.sources
+                    )
+                if labelled is not None:
+                    self.trainer.ensure_normalization(labelled.all())  # once: statistics of the first training data
+                else:
+                    self._normalise_from_the_equation(real, train_idx)
                 self.metrics = self.trainer.fit(
                     d.model_steps,
                     d.model_batch_size,
@@ -134,12 +145,35 @@ class DynaModel:
                     unlabelled_rng=self.streams.physics_states,
                 )
             with timed("model_check"):
-                recent = holdout_idx[-d.validation_size :]  # oldest first: the most recent ones
-                self.val_mse = self.trainer.validation_mse(BufferView(real, recent).all())
-                self.in_use = self.val_mse < d.threshold
+                recent = BufferView(real, holdout_idx[-d.validation_size :]).all()  # oldest first: the most recent
+                self.val_mse = self.trainer.validation_mse(recent)
+                self.baseline_mse = no_change_mse(self.physics, recent)
+                if d.accuracy == "relative":
+                    self.in_use = self.val_mse < d.relative_threshold * self.baseline_mse
+                else:
+                    self.in_use = self.val_mse < d.threshold
         if self.in_use and d.rollouts > 0:
             with timed("imagine"):
                 self.imagine(real, agent, d.rollouts)
+
+    def _physics_only_due(self, n_real: int) -> bool:
+        """PiMBRL before ``start_model_after``: the physics loss alone, once ``physics_start`` steps are done."""
+        start = self.cfg.dyna.physics_start
+        return self.trainer.residual is not None and start is not None and n_real >= start
+
+    def _normalise_from_the_equation(self, real: ReplayBuffer, train_idx: torch.Tensor) -> None:
+        """Fit the normalisation once from the equation, before any label is used.
+
+        State statistics from the observed states, the increment scale from one step of the physics' coarse
+        scheme from them (random actions).
+        """
+        if bool(self.model.fitted) or self.trainer.residual is None:
+            return
+        states = real.extra("state", train_idx)
+        actions = broad_actions(self.physics, len(states), self.streams.physics_states)
+        with torch.no_grad():
+            nxt = self.trainer.residual.rollout(states.double(), actions.double())[:, -1].float()
+        self.model.fit_normalization(states, nxt)
 
     def _switch_to_finetuning(self, t: int, last_eval: float | None) -> bool:
         """Switch (once, for good) to model-free fine-tuning when the configured criterion is met."""
@@ -187,7 +221,15 @@ class DynaModel:
     # ------------------------------------------------------------------ logging and state
     def metric_names(self) -> list[str]:
         """Columns this component adds to ``metrics.csv``."""
-        names = ["model/data_loss", "model/val_mse", "model/in_use", "model/finetuning", "imagined_buffer", "imagined_total"]
+        names = [
+            "model/data_loss",
+            "model/val_mse",
+            "model/no_change_mse",
+            "model/in_use",
+            "model/finetuning",
+            "imagined_buffer",
+            "imagined_total",
+        ]
         if self.trainer.residual is not None:
             names.append("model/physics_loss")
         return names
@@ -198,6 +240,7 @@ class DynaModel:
             "model/data_loss": self.metrics.get("model/data_loss"),
             "model/physics_loss": self.metrics.get("model/physics_loss"),
             "model/val_mse": None if not np.isfinite(self.val_mse) else self.val_mse,
+            "model/no_change_mse": None if not np.isfinite(self.baseline_mse) else self.baseline_mse,
             "model/in_use": int(self.in_use),
             "model/finetuning": int(self.finetuning),
             "imagined_buffer": len(self.imagined),
@@ -212,6 +255,7 @@ class DynaModel:
             "in_use": self.in_use,
             "finetuning": self.finetuning,
             "val_mse": self.val_mse,
+            "baseline_mse": self.baseline_mse,
             "metrics": dict(self.metrics),
             "imagined_total": self.imagined_total,
         }
@@ -223,8 +267,16 @@ class DynaModel:
         self.in_use = bool(state["in_use"])
         self.finetuning = bool(state["finetuning"])
         self.val_mse = float(state["val_mse"])
+        self.baseline_mse = float(state["baseline_mse"])
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
+
+
+def no_change_mse(physics: Physics, data: TransitionData) -> float:
+    """The error of predicting ``u_{t+1} = u_t``: the scale against which ``accuracy=relative`` judges a model."""
+    if len(data) == 0 or data.next_state is None:
+        return float("inf")
+    return float(physics.state_difference(data.next_state, data.state).double().pow(2).mean())
 
 
 def split_indices(buf: ReplayBuffer) -> tuple[torch.Tensor, torch.Tensor]:
@@ -258,6 +310,7 @@ class UnlabelledPairs:
         adapter: ActionAdapter,
         agent: Agent,
         streams: RandomStreams,
+        sources: tuple[str, ...] = ("policy", "imagined"),
     ) -> None:
         self.real = real
         self.idx = train_idx
@@ -266,23 +319,37 @@ class UnlabelledPairs:
         self.adapter = adapter
         self.agent = agent
         self.rng = streams.physics_states
+        self.sources = sources
 
     def __len__(self) -> int:
         return len(self.idx) + len(self.imagined)
 
     def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
-        """``batch`` unlabelled pairs (indices from ``rng``)."""
-        n_img = batch // 2 if len(self.imagined) else 0
-        rows = self.idx[torch.from_numpy(rng.integers(0, len(self.idx), size=batch - n_img))]
-        obs = self.real.obs.index_select(0, rows).numpy()
-        actions = self.adapter.to_env(self.agent.act(obs, rng=self.rng), self.rng)
-        phys = self.task.physical_action(actions, len(rows))
-        states = [self.real.extra("state", rows)]
-        acts = [torch.as_tensor(phys, dtype=torch.float32)]
-        if n_img:
-            img = torch.from_numpy(rng.integers(0, len(self.imagined), size=n_img))
-            states.append(self.imagined.extra("state", img))
-            acts.append(self.imagined.extra("physical_action", img))
+        """``batch`` unlabelled pairs, an equal share per source (indices from ``rng``).
+
+        ``imagined`` gives its share to the other sources until the imagined buffer has data.
+        """
+        sources = [s for s in self.sources if s != "imagined" or len(self.imagined)] or ["policy"]
+        counts = [batch // len(sources) + (1 if i < batch % len(sources) else 0) for i in range(len(sources))]
+        states: list[torch.Tensor] = []
+        acts: list[torch.Tensor] = []
+        for source, n in zip(sources, counts, strict=True):
+            if n == 0:
+                continue
+            if source == "policy":
+                rows = self.idx[torch.from_numpy(rng.integers(0, len(self.idx), size=n))]
+                obs = self.real.obs.index_select(0, rows).numpy()
+                actions = self.adapter.to_env(self.agent.act(obs, rng=self.rng), self.rng)
+                states.append(self.real.extra("state", rows))
+                acts.append(torch.as_tensor(self.task.physical_action(actions, n), dtype=torch.float32))
+            elif source == "imagined":
+                img = torch.from_numpy(rng.integers(0, len(self.imagined), size=n))
+                states.append(self.imagined.extra("state", img))
+                acts.append(self.imagined.extra("physical_action", img))
+            else:
+                seeds = self.real.extra("state", self.idx)
+                states.append(broad_states(self.task.physics, source, seeds, n, self.rng))
+                acts.append(broad_actions(self.task.physics, n, self.rng))
         return TransitionData(torch.cat(states), torch.cat(acts))
 
 

@@ -1,0 +1,296 @@
+"""Model-error study: data-only against physics-informed models, by number of labelled transitions.
+
+For each seed and each number of labels ``L`` (e.g. 0, 100, 300, 1000): collect random-policy transitions
+from the task's initial states; the first ``L`` carry labels, the first ``max(L, seed_states)`` states
+are *observed* (the physics loss may start from them without labels). Train from the same
+initialisation, for the same number of gradient steps:
+
+* ``data``: ``L_D`` on the ``L`` labelled transitions (none for ``L = 0``: the no-change prediction);
+* ``physics``: ``L_D`` on the same labels plus ``w_E L_E`` on unlabelled state-action pairs from the
+  configured sources (:mod:`pimbrl.models.state_sources`; ``train`` = the observed states with random
+  actions; ``imagined`` = states the model itself reaches from them). With ``L = 0`` its normalisation
+  comes from the equation (the coarse scheme's increments), not from labels.
+
+Both are tested on the same held-out in-sample transitions and on the out-of-sample transitions of
+:data:`~pimbrl.experiments.model_eval.OUT_OF_SAMPLE`, one step ahead and ``rollout_lengths`` chained
+steps ahead (open loop, the same random actions as the truth). Outputs: ``study.csv`` (one row per seed,
+labels, model, split, horizon: mean, median and 90th percentile of the per-transition MSE),
+``study.json`` and ``study.png`` (error against labels, mean over seeds with the min-max band).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..envs import PhysicsEnv, Task
+from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
+from ..models.state_sources import available_sources, broad_actions, broad_states
+from ._files import atomic_write_bytes
+from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _random_env_actions, collect_transitions
+
+__all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
+
+#: physics-loss sources of the study: ``train`` and ``imagined`` plus the broad sources
+STUDY_SOURCES = ("train", "imagined", "symmetry", "scaled", "noise", "box")
+
+
+class PhysicsPairs:
+    """Unlabelled pairs for the physics loss, split evenly over ``sources``, seeded by observed states."""
+
+    def __init__(
+        self,
+        task: Task,
+        model: TransitionModel,
+        sources: Sequence[str],
+        seeds: torch.Tensor,
+        imagined_length: int,
+        rng: np.random.Generator,
+    ) -> None:
+        self.task = task
+        self.physics = task.physics
+        self.model = model
+        self.sources = tuple(sources)
+        self.seeds = seeds
+        self.length = imagined_length
+        self._imagined = seeds
+        self.refresh(rng)
+
+    def refresh(self, rng: np.random.Generator) -> None:
+        """Recompute the states the model imagines from the seeds (source ``imagined``)."""
+        if "imagined" not in self.sources:
+            return
+        out, u = [self.seeds], self.seeds
+        with torch.no_grad():
+            for _ in range(self.length):
+                a = self._random_actions(len(u), rng)
+                u = self.model.predict_next(u, a)
+                u = u[torch.as_tensor(~self.physics.diverged(u.double().numpy()))]
+                out.append(u)
+        self._imagined = torch.cat(out)
+
+    def __len__(self) -> int:
+        return len(self.seeds)
+
+    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
+        """``batch`` pairs, an equal share from each source."""
+        counts = np.full(len(self.sources), batch // len(self.sources))
+        counts[: batch - counts.sum()] += 1
+        states, actions = [], []
+        for source, n in zip(self.sources, counts, strict=True):
+            if n == 0:
+                continue
+            if source in ("train", "imagined"):
+                pool = self.seeds if source == "train" else self._imagined
+                states.append(pool.index_select(0, torch.from_numpy(rng.integers(0, len(pool), size=n))))
+                actions.append(self._random_actions(int(n), rng))
+            else:
+                states.append(broad_states(self.physics, source, self.seeds, int(n), rng))
+                actions.append(broad_actions(self.physics, int(n), rng))
+        return TransitionData(torch.cat(states), torch.cat(actions))
+
+    def _random_actions(self, n: int, rng: np.random.Generator) -> torch.Tensor:
+        a = self.task.physical_action(_random_env_actions(self.task, rng, n), n)
+        return torch.as_tensor(a, dtype=torch.float32)
+
+
+def _check_sources(sources: Sequence[str], task: Task) -> tuple[str, ...]:
+    have = ("train", "imagined", *(s for s in available_sources(task.physics) if s not in ("policy", "imagined")))
+    bad = [s for s in sources if s not in have]
+    if bad or not sources:
+        raise ValueError(
+            f"physics sources {bad or '(none)'} are not available for {task.physics.name}; choose from {', '.join(have)}"
+        )
+    return tuple(sources)
+
+
+def _rollout_mse(model: TransitionModel | None, data: list[TransitionData], horizon: int) -> np.ndarray:
+    """Per-trajectory MSE after ``horizon`` chained steps (``data[i]`` is step ``i`` of every trajectory)."""
+    u = data[0].state
+    with torch.no_grad():
+        for i in range(horizon):
+            u = u if model is None else model.predict_next(u, data[i].action)
+    truth = data[horizon - 1].next_state
+    assert truth is not None
+    return (u - truth).double().pow(2).mean(dim=-1).numpy()
+
+
+def _trajectories(
+    task: Task, rng: np.random.Generator, n: int, horizon: int, initial: Callable[..., np.ndarray]
+) -> list[TransitionData]:
+    """``n`` open-loop random-action trajectories of ``horizon`` steps, step by step (no resets)."""
+    u = initial(rng, n)
+    k = np.zeros(n, dtype=np.int64)
+    steps = []
+    for _ in range(horizon):
+        a = task.physical_action(_random_env_actions(task, rng, n), n)
+        out = task.advance(u, a, k)
+        canonical = task.physics.canonical
+        steps.append(
+            TransitionData(
+                torch.as_tensor(canonical(u), dtype=torch.float32),
+                torch.as_tensor(a, dtype=torch.float32),
+                torch.as_tensor(canonical(out.state), dtype=torch.float32),
+            )
+        )
+        u, k = out.state, k + 1
+    return steps
+
+
+def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run the study for ``env_id`` (see the module docstring) and write its outputs into ``run_dir``."""
+    import gymnasium as gym
+
+    from ..config import validate
+
+    validate(cfg)
+    torch.set_num_threads(cfg.threads)
+    env = gym.make(env_id)
+    if not isinstance(env.unwrapped, PhysicsEnv) or env_id not in OUT_OF_SAMPLE:
+        raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
+    task = env.unwrapped.task
+    sources = _check_sources([s.strip() for s in cfg.sources.split(",") if s.strip()], task)
+    labels = sorted(set(cfg.labels))
+    horizons = sorted(set((1, *cfg.rollout_lengths)))
+    out_dir = Path(run_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    for seed in range(cfg.seed, cfg.seed + cfg.seeds):
+        rng = np.random.default_rng(seed)
+        n_obs = max(max(labels), cfg.seed_states)
+        pool = collect_transitions(task, rng, n_obs, task.sample_initial_states)
+        tests = {
+            "in": _trajectories(task, rng, cfg.test_transitions, max(horizons), task.sample_initial_states),
+            "out": _trajectories(task, rng, cfg.test_transitions, max(horizons), lambda g, n: OUT_OF_SAMPLE[env_id](task, g, n)),
+        }
+        observed = pool.state[: max(cfg.seed_states, 1)]
+        for n_labels in labels:
+            labelled = pool.take(torch.arange(n_labels)) if n_labels else None
+            for name in ("data", "physics"):
+                if name == "data" and labelled is None:
+                    model = None  # no labels, no physics: predict no change
+                else:
+                    model = _train(task, cfg, name, labelled, observed, sources, seed, log)
+                for split, traj in tests.items():
+                    for h in horizons:
+                        mse = _rollout_mse(model, traj, h)
+                        rows.append(
+                            {
+                                "seed": seed,
+                                "labels": n_labels,
+                                "model": name if model is not None else "no-change",
+                                "split": split,
+                                "horizon": h,
+                                "mean": float(mse.mean()),
+                                "median": float(np.median(mse)),
+                                "p90": float(np.percentile(mse, 90)),
+                            }
+                        )
+                one = [
+                    r for r in rows if r["seed"] == seed and r["labels"] == n_labels and r["horizon"] == 1 and r["split"] == "out"
+                ]
+                log(f"{env_id} seed {seed} labels {n_labels:5d} {name:7s}: out-of-sample 1-step MSE {one[-1]['mean']:.3e}")
+    cols = ["seed", "labels", "model", "split", "horizon", "mean", "median", "p90"]
+    text = (
+        ",".join(cols)
+        + "\n"
+        + "".join(",".join(repr(r[c]) if isinstance(r[c], float) else str(r[c]) for c in cols) + "\n" for r in rows)
+    )
+    atomic_write_bytes(out_dir / "study.csv", text.encode())
+    summary = _summarise(rows)
+    payload = {
+        "env": env_id,
+        "sources": sources,
+        "units": cfg.units,
+        "model_kind": cfg.model,
+        "wall_s": time.perf_counter() - t0,
+        "summary": summary,
+    }
+    atomic_write_bytes(out_dir / "study.json", (json.dumps(payload, indent=2) + "\n").encode())
+    _plot(summary, out_dir / "study.png", env_id)
+    return payload
+
+
+def _train(
+    task: Task,
+    cfg: ModelEvalConfig,
+    name: str,
+    labelled: TransitionData | None,
+    observed: torch.Tensor,
+    sources: tuple[str, ...],
+    seed: int,
+    log: Callable[[str], None],
+) -> TransitionModel:
+    physics = task.physics
+    torch.manual_seed(seed)
+    model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=cfg.model)
+    residual = PhysicsResidual(physics, model.n_intermediate, "solver" if cfg.scheme == "solver" else "etd", cfg.units)
+    trainer = ModelTrainer(model, residual if name == "physics" else None, lr=cfg.lr, weight_physics=cfg.physics_weight)
+    rng = np.random.default_rng(seed + 1)
+    if labelled is not None:
+        trainer.ensure_normalization(labelled)
+    else:  # zero labels: state statistics from the observed states, increments from the equation
+        a = broad_actions(physics, len(observed), rng)
+        with torch.no_grad():
+            nxt = residual.rollout(observed.double(), a.double())[:, -1].float()
+        model.fit_normalization(observed, nxt)
+    pairs = PhysicsPairs(task, model, sources, observed, cfg.imagined_length, rng) if name == "physics" else None
+    done = 0
+    while done < cfg.steps:
+        chunk = min(cfg.refresh_every, cfg.steps - done)
+        if pairs is not None and done:
+            pairs.refresh(rng)
+        trainer.fit(chunk, cfg.batch_size, rng, labelled=labelled, unlabelled=pairs)
+        done += chunk
+    return model
+
+
+def _summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Mean, min and max over seeds of the mean MSE, per labels, model, split and horizon."""
+    keys = sorted({(r["labels"], r["model"], r["split"], r["horizon"]) for r in rows})
+    out = []
+    for labels, model, split, horizon in keys:
+        vals = [r["mean"] for r in rows if (r["labels"], r["model"], r["split"], r["horizon"]) == (labels, model, split, horizon)]
+        out.append({"labels": labels, "model": model, "split": split, "horizon": horizon, "mean": float(np.mean(vals)),
+                    "min": float(np.min(vals)), "max": float(np.max(vals)), "seeds": len(vals)})  # fmt: skip
+    return out
+
+
+def _plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
+    from ..plotting import plt, save_figure
+
+    horizons = sorted({r["horizon"] for r in summary})
+    fig, axes = plt.subplots(2, len(horizons), figsize=(3.6 * len(horizons), 6.4), squeeze=False)
+    colors = {"data": "tab:orange", "physics": "tab:blue", "no-change": "tab:gray"}
+    for i, split in enumerate(("in", "out")):
+        for j, h in enumerate(horizons):
+            ax = axes[i, j]
+            for model, color in colors.items():
+                pts = sorted(
+                    (r["labels"], r["mean"], r["min"], r["max"])
+                    for r in summary
+                    if r["model"] == model and r["split"] == split and r["horizon"] == h
+                )
+                if not pts:
+                    continue
+                x = [max(p[0], 10) for p in pts]  # zero labels drawn at 10 on the log axis
+                ax.plot(x, [p[1] for p in pts], "o-", color=color, label=model)
+                ax.fill_between(x, [p[2] for p in pts], [p[3] for p in pts], color=color, alpha=0.2)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_title(f"{split}-sample, {h} step{'s' if h > 1 else ''}", fontsize=9)
+            if i == 1:
+                ax.set_xlabel("labelled transitions (0 drawn at 10)")
+            if j == 0:
+                ax.set_ylabel("next-state MSE")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    save_figure(fig, path)

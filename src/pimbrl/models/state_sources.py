@@ -1,0 +1,103 @@
+"""Label-free states for the physics loss: where the equation can teach a model what no label shows.
+
+The physics loss needs a state and an action, never a label, so it can be evaluated far beyond the
+transitions a run has observed. Applied only where the labels already are (real states with the
+policy's actions), it barely moves the prediction, because the data loss pins it there already; applied on
+broad, label-free states it teaches the model the dynamics of states it has not seen. Sources, each
+derived from observed *seed* states or from the physics alone:
+
+=============  ==========================================================================================
+source         states (actions: uniform over the physical action box, or bang-bang, half and half)
+=============  ==========================================================================================
+``symmetry``   circular shifts and the reflection ``u(x) -> -u(-x)`` of observed fields (the symmetries
+               the :class:`~pimbrl.physics.Physics` declares; PDEs)
+``scaled``     observed fields scaled by a factor uniform in ``[0, 1.5]``: toward rest and beyond
+``noise``      observed fields plus smooth random fields (low Fourier modes) of comparable amplitude
+``box``        states uniform over the physics' admissible box (ODEs: e.g. Cart-Pole's termination box)
+=============  ==========================================================================================
+
+``policy`` (real states with the policy's actions) and ``imagined`` (pairs of the imagined buffer) are
+the two sources the training loop itself holds; :data:`BROAD_SOURCES` are the ones made here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from ..physics import Physics
+
+__all__ = ["BROAD_SOURCES", "LOOP_SOURCES", "SOURCES", "available_sources", "broad_actions", "broad_states"]
+
+#: sources held by the training loop (real buffer, imagined buffer)
+LOOP_SOURCES = ("policy", "imagined")
+#: sources made from seed states and the physics by :func:`broad_states`
+BROAD_SOURCES = ("symmetry", "scaled", "noise", "box")
+SOURCES = LOOP_SOURCES + BROAD_SOURCES
+
+
+def available_sources(physics: Physics) -> tuple[str, ...]:
+    """The sources that exist for ``physics`` (``box`` needs an admissible box, the field sources a PDE)."""
+    out = list(LOOP_SOURCES)
+    if physics.shift_symmetric or physics.reflection_symmetric:
+        out += ["symmetry", "scaled", "noise"]
+    if physics.admissible_box() is not None:
+        out.append("box")
+    return tuple(out)
+
+
+def broad_states(physics: Physics, source: str, seeds: torch.Tensor, n: int, rng: np.random.Generator) -> torch.Tensor:
+    """``n`` label-free states ``(n, state_dim)`` (float32) of ``source`` from ``seeds`` (observed states)."""
+    if source not in available_sources(physics) or source in LOOP_SOURCES:
+        raise ValueError(f"{source!r} is not a broad state source of {physics.name} (have {available_sources(physics)})")
+    if source == "box":
+        box = physics.admissible_box()
+        assert box is not None
+        return torch.as_tensor(rng.uniform(box[0], box[1], size=(n, physics.state_dim)), dtype=torch.float32)
+    u = seeds.index_select(0, torch.from_numpy(rng.integers(0, len(seeds), size=n))).double()
+    if source == "symmetry":
+        if physics.shift_symmetric:
+            shifts = rng.integers(0, physics.state_dim, size=n)
+            idx = (torch.arange(physics.state_dim)[None, :] - torch.from_numpy(shifts)[:, None]) % physics.state_dim
+            u = torch.gather(u, 1, idx)
+        if physics.reflection_symmetric:
+            flip = torch.from_numpy(rng.random(n) < 0.5)
+            reflected = -torch.roll(torch.flip(u, dims=[1]), shifts=1, dims=1)  # u'[j] = -u[-j mod n]
+            u = torch.where(flip[:, None], reflected, u)
+    elif source == "scaled":
+        u = u * torch.from_numpy(rng.uniform(0.0, 1.5, size=(n, 1)))
+    else:  # noise
+        u = u + _smooth_noise(physics.state_dim, n, rng) * u.std(dim=1, keepdim=True).clamp_min(1e-6)
+    return u.float()
+
+
+def broad_actions(physics: Physics, n: int, rng: np.random.Generator) -> torch.Tensor:
+    """``n`` physical actions: uniform over the action box for half of them, bang-bang for the other half."""
+    low, high = np.asarray(physics.action_low, np.float64), np.asarray(physics.action_high, np.float64)
+    uniform = rng.uniform(low, high, size=(n, physics.action_dim))
+    bang = np.where(rng.random((n, physics.action_dim)) < 0.5, low, high)
+    a = np.where(rng.random((n, 1)) < 0.5, uniform, bang)
+    return torch.as_tensor(a, dtype=torch.float32)
+
+
+def _smooth_noise(dim: int, n: int, rng: np.random.Generator, modes: int = 6) -> torch.Tensor:
+    """Random periodic fields of unit RMS built from the lowest ``modes`` Fourier modes."""
+    k = np.arange(1, modes + 1)
+    x = np.arange(dim) / dim
+    amp = rng.standard_normal((n, modes)) / k
+    phase = rng.uniform(0, 2 * np.pi, size=(n, modes))
+    field = (amp[:, :, None] * np.cos(2 * np.pi * k[None, :, None] * x[None, None, :] + phase[:, :, None])).sum(1)
+    field /= np.sqrt((field**2).mean(axis=1, keepdims=True)) + 1e-12
+    return torch.as_tensor(field)
+
+
+def parse_sources(text: str | Sequence[str], physics: Physics) -> tuple[str, ...]:
+    """Validate a source list (``"policy,symmetry"`` or a sequence) against what ``physics`` offers."""
+    names = tuple(s.strip() for s in (text.split(",") if isinstance(text, str) else text) if s.strip())
+    have = available_sources(physics)
+    bad = [s for s in names if s not in have]
+    if bad or not names:
+        raise ValueError(f"physics sources {bad or '(none)'} are not available for {physics.name}; choose from {', '.join(have)}")
+    return names
