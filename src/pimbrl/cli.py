@@ -201,6 +201,9 @@ def _seed_list(text: str) -> list[int]:
         raise ValueError(
             f"--seeds must be a count >= 1 (e.g. 3 for seeds 0,1,2) or a list (e.g. 0,1,2, or 5, for seed 5 alone), got {text!r}"
         )
+    twice = [s for i, s in enumerate(seeds) if s in seeds[:i]]
+    if twice:  # one run directory per seed: a repeated seed would be one run counted twice
+        raise ValueError(f"seed {twice[0]} is given twice in --seeds {text}; give each seed once")
     return seeds
 
 

@@ -87,12 +87,16 @@ def plan_runs(
 
     ``overrides`` (field paths -> values, or `pimbrl train` flags) go to every run they apply to; one that
     applies to none is a :class:`ConfigError` with the reason. ``mfrl-matched`` takes the update-to-data
-    ratio of the model-based preset unless ``overrides`` set ``utd``.
+    ratio of the model-based preset unless ``overrides`` set ``utd``. A seed given twice is a
+    ``ValueError`` (it would be one run counted as two seeds).
     """
     overrides = _as_overrides(overrides)
     for key in ("method", "seed"):
         if key in overrides:
             raise ConfigError(f"compare sets {key} itself (--methods, --seeds); it cannot be overridden")
+    twice = [s for i, s in enumerate(seeds) if s in list(seeds)[:i]]
+    if twice:  # each seed is one run directory: a repeated seed would be one run counted as two seeds
+        raise ValueError(f"seed {twice[0]} is given twice in the seeds {list(seeds)}; give each seed once")
     root = Path(root)
     specs = []
     used: set[str] = set()

@@ -13,7 +13,9 @@ stencil sums are spelled out with the coefficients of the :class:`~pimbrl.physic
 tables as literals, and compiles it with Numba. Literal coefficients and fixed offsets let LLVM unroll
 and vectorise every stencil; a generic kernel that loops over coefficient arrays runs 3-4 times slower.
 The generated source is written under the cache directory (``$PIMBRL_CACHE_DIR``, default
-``~/.cache/pimbrl``) so that Numba's on-disk cache makes later imports instant.
+``~/.cache/pimbrl``) so that Numba's on-disk cache makes later imports instant. Since modules are
+imported from there, a cache directory is used only if it is owned by the current user and not writable
+by group or others (see :func:`_write_source`).
 
 The kernel computes in float64, loops over the batch without Python, and integrates with explicit
 Euler or classic RK4. It can also accumulate, at the start of every solver step, the spatial means of
@@ -23,11 +25,15 @@ integrands of the Kuramoto-Sivashinsky rewards), averaged over the control step.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import importlib.util
 import os
+import shutil
+import stat
 import sys
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -274,20 +280,65 @@ def _wide_vectors() -> Iterator[None]:
 
 
 def _write_source(filename: str, source: str) -> Path:
-    """Write ``source`` once into the kernel cache (atomically); fall back to a private temp dir."""
-    for directory in (
-        cache_dir() / "kernels",
-        Path(tempfile.gettempdir()) / f"pimbrl-kernels-{getattr(os, 'getuid', lambda: 0)()}",
-    ):
+    """Write ``source`` once into the kernel cache (atomically) and return its path.
+
+    The cache is ``cache_dir()/kernels``, else (not creatable) the per-user ``pimbrl-kernels-<uid>``
+    under the system temp directory; each is used only if it is a directory owned by this user and not
+    writable by group or others (:func:`_private_dir`), since its modules are imported. Where neither is,
+    a fresh private temp directory of this process is used (nothing is cached across processes).
+    """
+    candidates = [cache_dir() / "kernels", Path(tempfile.gettempdir()) / f"pimbrl-kernels-{_uid()}"]
+    for directory in candidates:
         try:
-            directory.mkdir(parents=True, exist_ok=True)
-            path = directory / filename
-            if not path.exists() or path.read_text() != source:
-                fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp")
-                with os.fdopen(fd, "w") as fh:
-                    fh.write(source)
-                os.replace(tmp, path)
-            return path
+            if not _private_dir(directory):
+                continue
+            return _write_once(directory / filename, source)
         except OSError:
             continue
-    raise OSError("pimbrl could not write its generated kernel anywhere; set PIMBRL_CACHE_DIR to a writable directory")
+    global _PROCESS_DIR
+    if _PROCESS_DIR is None:
+        _PROCESS_DIR = Path(tempfile.mkdtemp(prefix="pimbrl-kernels-"))  # mode 0700, ours
+        atexit.register(shutil.rmtree, _PROCESS_DIR, True)
+    return _write_once(_PROCESS_DIR / filename, source)
+
+
+_PROCESS_DIR: Path | None = None
+
+
+def _uid() -> int:
+    return getattr(os, "getuid", lambda: 0)()
+
+
+def _private_dir(directory: Path) -> bool:
+    """Create ``directory`` (mode 0700) if missing; whether it is safe to import modules from.
+
+    Safe: a real directory (not a symbolic link) owned by this user, not writable by group or others.
+    An unsafe one is refused with a warning (another user could plant code there); ``OSError`` if it
+    cannot be created.
+    """
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = os.lstat(directory)
+    problem = None
+    if not stat.S_ISDIR(info.st_mode):
+        problem = "it is not a directory (a symbolic link?)"
+    elif hasattr(os, "getuid") and info.st_uid != os.getuid():
+        problem = f"it is owned by user id {info.st_uid}, not by this user ({os.getuid()})"
+    elif info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        problem = f"group or others may write it (mode {stat.S_IMODE(info.st_mode):o})"
+    if problem is not None:
+        warnings.warn(
+            f"pimbrl is not caching compiled kernels in {directory}: {problem}; set PIMBRL_CACHE_DIR to a "
+            "directory of your own (mode 0700)",
+            stacklevel=3,
+        )
+        return False
+    return True
+
+
+def _write_once(path: Path, source: str) -> Path:
+    if not path.exists() or path.read_text() != source:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(source)
+        os.replace(tmp, path)
+    return path

@@ -13,8 +13,9 @@ A :class:`Run` holds the components of one training run, each owning its state:
 * ``schedule`` - the agent-update credit (a fractional update-to-data ratio carries over).
 
 A checkpoint is the dict of their state dicts, written at an episode end; :func:`open_run` rebuilds the
-components from ``config.json`` and loads it, so a resumed run continues exactly where the checkpoint was
-taken.
+components from ``config.json`` (validated like a new configuration) and loads it (its counters checked),
+so a resumed run continues exactly where the checkpoint was taken. :func:`create_run` and :func:`open_run`
+(unless ``inspect_only``) take the run directory's lock, which :func:`train` releases when it ends.
 """
 
 from __future__ import annotations
@@ -31,20 +32,31 @@ import torch
 
 from ..agents import Agent, make_agent
 from ..buffers import ReplayBuffer
-from ..config import from_dict, to_dict
+from ..config import ConfigError, to_dict
 from ..envs import Task
 from ..models import TransitionModel
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from .collector import Collector
-from .config import TrainConfig
+from .config import TrainConfig, config_from_dict
 from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator
 from .logger import RunLogger
-from .rundir import RunDirectory, package_versions, steps_to_threshold
+from .rundir import CheckpointError, RunDirectory, package_versions, steps_to_threshold
 from .streams import RandomStreams
 
-__all__ = ["Run", "RunSummary", "UpdateSchedule", "build_run", "open_run", "train"]
+__all__ = [
+    "STATE_KEYS",
+    "Run",
+    "RunSummary",
+    "UpdateSchedule",
+    "build_run",
+    "check_checkpoint",
+    "create_run",
+    "open_run",
+    "read_run_config",
+    "train",
+]
 
 #: ``on_event(name, run)`` is called after each part of the loop (for tests and instrumentation).
 EventHook = Callable[[str, "Run"], None]
@@ -201,7 +213,10 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
     cfg, log = run.cfg, run.logger
     event = on_event or (lambda name, r: None)
     if run.finished:  # e.g. killed between the final checkpoint and the status update
-        return _finish(run)
+        try:
+            return _finish(run)
+        finally:
+            run.run_dir.close()  # releases the run's lock
     log.open(run.t, cfg.total_steps, f"{cfg.method}/{cfg.agent} {cfg.env} seed {cfg.seed}")
     try:
         run.collector.reset(first=run.t == 0)
@@ -261,6 +276,7 @@ def _evaluate(run: Run) -> None:
 
 
 def _finish(run: Run) -> RunSummary:
+    """Mark the run finished with its summary in ``config.json`` (once; also repairs a missing mark)."""
     summary = run.summary()
     if run.run_dir.status != "finished":
         run.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))
@@ -292,27 +308,132 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
 
 
 def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, command: str = "") -> Run:
-    """A new run of ``cfg`` in ``path`` (which must not hold another run); its ``config.json`` is written."""
+    """A new run of ``cfg`` in ``path`` (which must not hold another run); its ``config.json`` is written.
+
+    The directory is created and locked before it is checked for a run, so of two processes starting a
+    run in one directory exactly one succeeds; the other gets :class:`~pimbrl.training.rundir.RunLockedError`
+    or ``FileExistsError``. The lock is held until :func:`train` ends (or the process does).
+    """
     run_dir = RunDirectory(path)
     if run_dir.config_path.exists():
-        raise FileExistsError(f"{path} already holds a run; use `pimbrl resume {path}` or choose another --run-dir")
+        raise FileExistsError(_exists_message(path))
     run = build_run(cfg, run_dir, progress)  # first: a configuration that cannot run leaves no directory behind
     run_dir.path.mkdir(parents=True, exist_ok=True)
-    run_dir.write_config({"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command})
+    run_dir.lock(command or None)
+    try:
+        if run_dir.config_path.exists():  # another process created the run meanwhile
+            raise FileExistsError(_exists_message(path))
+        run_dir.remove_stale_temporaries()
+        run_dir.write_config({"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command})
+    except BaseException:
+        run_dir.close()
+        raise
     return run
+
+
+def _exists_message(path: str | Path) -> str:
+    return f"{path} already holds a run; use `pimbrl resume {path}` or choose another --run-dir"
+
+
+def read_run_config(run_dir: RunDirectory) -> TrainConfig:
+    """The configuration in a run's ``config.json``, type-checked and validated like a new one.
+
+    Errors are :class:`~pimbrl.config.ConfigError` naming the file, e.g.
+    ``DIR/config.json: agent.gamma must be in (0.0, 1.0], got 7.5``.
+    """
+    config = run_dir.read_config().get("config")
+    if config is None:
+        raise ConfigError(f"{run_dir.config_path}: has no 'config' object; this is not a run written by pimbrl")
+    try:
+        return config_from_dict(config)
+    except ConfigError as exc:
+        raise ConfigError(f"{run_dir.config_path}: {exc}") from None
+
+
+#: The parts of a checkpoint (:meth:`Run.state_dict`).
+STATE_KEYS = ("t", "streams", "collector", "real", "agent", "model", "logger", "schedule", "torch_rng")
+
+
+def check_checkpoint(state: dict[str, Any], cfg: TrainConfig, path: str | Path) -> None:
+    """Check a checkpoint's parts and counters against the run's configuration (:class:`CheckpointError`).
+
+    The step ``t`` must lie in ``[0, total_steps]``, the episode count in ``[0, t]``, the agent's
+    update count be ``>= 0`` and the real buffer's counters fit ``t`` and its capacity.
+    """
+    fix = "the checkpoint was edited or damaged; delete it to restart the run from its beginning"
+    missing = [repr(k) for k in STATE_KEYS if k not in state]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks {', '.join(missing)}: {fix}")
+
+    def counter(name: str, value: Any, low: int, high: int | None = None, what: str = "") -> int:
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise CheckpointError(f"checkpoint {path}: {name} must be an integer, got {value!r}: {fix}")
+        if value < low or (high is not None and value > high):
+            bound = f"in [{low}, {high}]" if high is not None else f">= {low}"
+            raise CheckpointError(f"checkpoint {path}: {name} must be {bound}{what}, got {value}: {fix}")
+        return value
+
+    t = state["t"]
+    if not isinstance(t, int) or isinstance(t, bool) or t < 0:
+        raise CheckpointError(f"checkpoint {path} is at step {t!r}; a step count is an integer >= 0: {fix}")
+    if t > cfg.total_steps:
+        raise CheckpointError(
+            f"checkpoint {path} is at step {t:,d}, beyond the run's total_steps {cfg.total_steps:,d} (config.json): "
+            "restore total_steps to at least that, or start a new run"
+        )
+    try:
+        counter("collector.episode", state["collector"]["episode"], 0, t, " (the step)")
+        counter("agent.n_updates", state["agent"]["n_updates"], 0)
+        real = state["real"]
+        capacity = counter("real.capacity", real["capacity"], 1)
+        size = counter("real.size", real["size"], 0, min(t, capacity), " (the step and the capacity)")
+        counter("real.pos", real["pos"], 0, capacity - 1, " (the capacity)")
+        counter("real.total_added", real["total_added"], size, t, " (size to step)")
+    except (KeyError, TypeError) as exc:
+        raise CheckpointError(f"checkpoint {path} lacks a part or counter ({_describe(exc)}): {fix}") from None
+    credit = state["schedule"].get("credit") if isinstance(state["schedule"], dict) else None
+    if not isinstance(credit, float) or not math.isfinite(credit):
+        raise CheckpointError(f"checkpoint {path}: schedule.credit must be a finite number, got {credit!r}: {fix}")
+
+
+def _describe(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
 
 
 def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False) -> Run:
     """The run in ``path`` at its last checkpoint (from the start if it has none).
 
-    To continue training, the logs are cut back to the checkpoint. ``inspect_only`` loads the state
-    without touching any file (for evaluation and figures, also of a run still in progress).
+    To continue training, the run directory is locked (held until :func:`train` ends), stale temporary
+    files are removed, the logs are cut back to the checkpoint, and a run whose final checkpoint is
+    there but whose ``config.json`` still says "running" (killed between the two) is marked finished.
+    ``inspect_only`` loads the state without taking the lock or touching any file (for evaluation and
+    figures, also of a run still in progress). In both cases ``config.json`` is validated like a new
+    configuration and the checkpoint's counters are checked (:func:`check_checkpoint`).
     """
     run_dir = RunDirectory(path)
-    cfg = from_dict(TrainConfig, run_dir.read_config()["config"])
-    run = build_run(cfg, run_dir, progress)
-    if run_dir.checkpoint_path.exists():
-        run.load_state_dict(run_dir.load_checkpoint())
+    run_dir.read_config()  # not a run directory: FileNotFoundError, before any lock file is made
     if not inspect_only:
-        run_dir.truncate_logs(run.t)
+        run_dir.lock()
+    try:
+        if not inspect_only:
+            run_dir.remove_stale_temporaries()
+        cfg = read_run_config(run_dir)
+        run = build_run(cfg, run_dir, progress)
+        if run_dir.checkpoint_path.exists():
+            state = run_dir.load_checkpoint()
+            check_checkpoint(state, cfg, run_dir.checkpoint_path)
+            try:
+                run.load_state_dict(state)
+            except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as exc:
+                raise CheckpointError(
+                    f"checkpoint {run_dir.checkpoint_path} does not fit the run's configuration ({_describe(exc)}); "
+                    "was config.json edited? Restore it, or delete the checkpoint to restart the run"
+                ) from None
+        if not inspect_only:
+            run_dir.truncate_logs(run.t)
+            if run.finished:
+                _finish(run)  # repairs the mark of a run killed between its final checkpoint and the mark
+    except BaseException:
+        run_dir.close()
+        raise
     return run

@@ -3,41 +3,107 @@
 Layout of a run directory::
 
     config.json          resolved configuration, package versions, command line, status
+    run.lock             the lock of the process writing the run (its pid, host and command)
     evaluations.csv      one row per evaluation: step, return_mean, return_min, return_max, ..., wall_s
     metrics.csv          training metrics every ``log_every`` steps (losses, update-to-data ratio, speed)
     episodes.csv         one row per training episode
-    checkpoints/latest.pt  the full training state (written atomically)
+    checkpoints/latest.pt  the full training state (written atomically, with a checksum)
     tb/                  TensorBoard events (optional)
 
 Every file is written so that a process killed at any moment (``kill -9``) leaves a consistent directory:
 checkpoints and the config are written to a temporary file, fsynced and renamed; CSV rows are appended
 and flushed, and on resume each CSV is cut back to the rows of the checkpointed step (a torn last line
-is dropped).
+is dropped). Temporary files left by a kill are removed when the run is next opened for writing
+(:meth:`RunDirectory.remove_stale_temporaries`).
+
+One process at a time writes a run: :meth:`RunDirectory.lock` takes an exclusive OS lock
+(``fcntl.flock``) on ``run.lock``, held until :meth:`RunDirectory.close` or the end of the process (the
+OS drops it also when the process is killed). Reading a run (evaluation, figures) needs no lock.
+
+A checkpoint file is a one-line header, ``pimbrl-checkpoint <format> sha256 <hex digest>``, then the
+``torch.save`` bytes of the state. It is read only if the format is this version's and the digest
+matches, and then with ``torch.load(weights_only=True)``: tensors and plain data, never code.
 """
 
 from __future__ import annotations
 
 import csv
+import datetime
+import hashlib
 import io
 import json
 import os
+import pickle
+import re
+import socket
 import sys
 import tempfile
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 
-__all__ = ["CsvLog", "RunDirectory", "atomic_write_bytes", "package_versions", "steps_to_threshold"]
+from ..config import ConfigError
 
-CHECKPOINT_VERSION = 1
+__all__ = [
+    "CHECKPOINT_VERSION",
+    "LOCK_FILE",
+    "CheckpointError",
+    "CsvLog",
+    "RunDirectory",
+    "RunLockedError",
+    "atomic_write_bytes",
+    "pack_checkpoint",
+    "package_versions",
+    "steps_to_threshold",
+    "unpack_checkpoint",
+]
+
+#: Format of checkpoint files. 1: a bare ``torch.save`` pickle (earlier versions); 2: header with a SHA-256
+#: checksum, then ``torch.save`` bytes of tensors and plain data only (read with ``weights_only=True``).
+CHECKPOINT_VERSION = 2
+_MAGIC = b"pimbrl-checkpoint"
+#: The lock file of a run directory (holds the pid, host and command of the process writing the run).
+LOCK_FILE = "run.lock"
+#: ``.<name>.<random>.tmp``: a temporary file of :func:`atomic_write_bytes`.
+_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]+\.tmp$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint cannot be used (another format, corrupted, not plain data, inconsistent counters)."""
+
+
+class RunLockedError(FileExistsError):
+    """Another process holds the lock of a run directory; the message names it."""
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where the OS allows (Linux: /proc)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a fsynced temporary file and an atomic rename."""
+    """Write ``data`` to ``path`` via a fsynced temporary file and an atomic rename.
+
+    The file gets the mode a newly created file would get (``0o666`` less the umask, e.g. 0644), not
+    the 0600 of the temporary file.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -55,6 +121,77 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             os.close(dir_fd)
     except OSError:
         pass
+
+
+def pack_checkpoint(payload: bytes) -> bytes:
+    """A checkpoint file's bytes: the header (format, SHA-256 of ``payload``) and ``payload``."""
+    digest = hashlib.sha256(payload).hexdigest().encode()
+    return b"%s %d sha256 %s\n" % (_MAGIC, CHECKPOINT_VERSION, digest) + payload
+
+
+def unpack_checkpoint(data: bytes, path: str | os.PathLike) -> bytes:
+    """The payload of a checkpoint file's bytes, after checking its format and checksum.
+
+    Raises :class:`CheckpointError` (named after ``path``) for another format or a checksum mismatch.
+    """
+    if data.startswith(b"PK\x03\x04"):  # a bare torch.save zip: format 1, which may hold pickled code
+        raise CheckpointError(
+            f"checkpoint {path} was written by another version of pimbrl (checkpoint format 1, without a checksum; "
+            f"this version reads format {CHECKPOINT_VERSION}) and is not loaded: continue or evaluate the run with "
+            "the pimbrl version that wrote it, or start a new run"
+        )
+    end = data.find(b"\n", 0, 256)
+    fields = data[:end].split(b" ") if end > 0 else []
+    if len(fields) != 4 or fields[0] != _MAGIC or fields[2] != b"sha256" or not fields[1].isdigit():
+        raise CheckpointError(
+            f"checkpoint {path} is corrupted or not a pimbrl checkpoint (no valid header); it is not used: "
+            "delete it to restart the run from its beginning (`pimbrl resume`), or start a new run"
+        )
+    version = int(fields[1])
+    if version != CHECKPOINT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {path} was written by another version of pimbrl (checkpoint format {version}; this "
+            f"version reads format {CHECKPOINT_VERSION}) and is not loaded: continue or evaluate the run with the "
+            "pimbrl version that wrote it, or start a new run"
+        )
+    payload = data[end + 1 :]
+    if hashlib.sha256(payload).hexdigest().encode() != fields[3]:
+        raise CheckpointError(
+            f"checkpoint {path} is corrupted (checksum mismatch); it is not used: delete it to restart the run "
+            "from its beginning (`pimbrl resume`), or start a new run"
+        )
+    return payload
+
+
+_PLAIN = (torch.Tensor, int, float, bool, str, bytes, type(None), torch.dtype, torch.Size, torch.device)
+
+
+def _plain(obj: Any, where: str) -> Any:
+    """``obj`` as tensors and plain data (what ``weights_only`` loads): NumPy scalars become Python ones.
+
+    Anything else is a ``TypeError`` naming where in the state it is (a bug, found when saving rather
+    than when the checkpoint is read).
+    """
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, _PLAIN):
+        return obj
+    if isinstance(obj, dict):
+        items = {k: _plain(v, f"{where}/{k}") for k, v in obj.items()}
+        if all(items[k] is v for k, v in obj.items()):
+            return obj  # unchanged (keeps a module state dict's metadata)
+        return OrderedDict(items) if isinstance(obj, OrderedDict) else items
+    if isinstance(obj, (list, tuple)):
+        seq = [_plain(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+        if all(a is b for a, b in zip(seq, obj)):
+            return obj
+        return type(obj)(seq) if type(obj) in (list, tuple) else seq
+    raise TypeError(f"checkpoint state {where or '/'} is a {type(obj).__name__}; a checkpoint holds tensors and plain data only")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
 def steps_to_threshold(evaluations: list[dict[str, Any]], threshold: float | None) -> int | None:
@@ -179,6 +316,83 @@ class RunDirectory:
         self.evaluations = CsvLog(self.path / "evaluations.csv", self.EVAL_COLUMNS)
         self.episodes = CsvLog(self.path / "episodes.csv", self.EPISODE_COLUMNS)
         self._metrics: CsvLog | None = None
+        self._lock_fd: int | None = None
+
+    # ------------------------------------------------------------------ lock
+    @property
+    def lock_path(self) -> Path:
+        """The lock file, ``run.lock``."""
+        return self.path / LOCK_FILE
+
+    @property
+    def locked(self) -> bool:
+        """Whether this object holds the run's lock."""
+        return self._lock_fd is not None
+
+    def lock(self, command: str | None = None) -> None:
+        """Take the run's exclusive lock for this process (the directory must exist).
+
+        The lock is an OS lock (``fcntl.flock``) on ``run.lock``, held until :meth:`close` or the end of
+        the process, also a killed one. The file records the holder's pid, host and ``command`` (default:
+        this process's command line). Raises :class:`RunLockedError`, naming the holder, if another
+        process (or another open of the run in this process) holds it.
+        """
+        if self._lock_fd is not None:
+            return
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - no advisory locks on this platform
+            return
+        fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            other = _describe_holder(fd)
+            os.close(fd)
+            raise RunLockedError(
+                f"{self.path} is in use by another pimbrl process ({other}); wait for it to end or stop it, "
+                "then try again (only one process may write a run; `pimbrl eval` and `figure` may read it meanwhile)"
+            ) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        holder = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "command": command if command is not None else " ".join(sys.argv),
+            "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        }
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)
+        except OSError:
+            pass  # the lock holds without the description
+        self._lock_fd = fd
+
+    def unlock(self) -> None:
+        """Release the run's lock if this object holds it."""
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # closing the only descriptor of the open file releases the flock
+            self._lock_fd = None
+
+    def remove_stale_temporaries(self) -> list[Path]:
+        """Delete the temporary files (``.<name>.<random>.tmp``) left by a process killed while writing.
+
+        Call it only while holding the lock (a running process's temporary file is not stale); returns
+        the files removed.
+        """
+        removed = []
+        for directory in (self.path, self.checkpoint_path.parent):
+            if not directory.is_dir():
+                continue
+            for entry in directory.iterdir():
+                if _TEMPORARY.match(entry.name) and entry.is_file() and not entry.is_symlink():
+                    try:
+                        entry.unlink()
+                        removed.append(entry)
+                    except FileNotFoundError:
+                        pass
+        return removed
 
     # ------------------------------------------------------------------ config
     def write_config(self, payload: dict[str, Any]) -> None:
@@ -186,17 +400,27 @@ class RunDirectory:
         atomic_write_bytes(self.config_path, (json.dumps(payload, indent=2, sort_keys=False) + "\n").encode())
 
     def read_config(self) -> dict[str, Any]:
-        """The contents of ``config.json``; ``FileNotFoundError`` if this is not a run directory."""
+        """The contents of ``config.json``.
+
+        ``FileNotFoundError`` if this is not a run directory, :class:`~pimbrl.config.ConfigError` if
+        the file is not a JSON object.
+        """
         if not self.config_path.exists():
             raise FileNotFoundError(f"{self.path} is not a pimbrl run directory (no config.json)")
-        return json.loads(self.config_path.read_text())
+        try:
+            payload = json.loads(self.config_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{self.config_path}: not valid JSON ({exc})") from None
+        if not isinstance(payload, dict):
+            raise ConfigError(f"{self.config_path}: must be a JSON object, got {type(payload).__name__}")
+        return payload
 
     @property
     def status(self) -> str | None:
         """``"running"``, ``"finished"``, or ``None`` where there is no readable run."""
         try:
             return self.read_config().get("status")
-        except (FileNotFoundError, json.JSONDecodeError):
+        except (FileNotFoundError, ConfigError):
             return None
 
     def result(self, threshold: float | None = None) -> dict[str, Any] | None:
@@ -254,25 +478,62 @@ class RunDirectory:
             self.metrics([]).truncate_after(step)
 
     def close(self) -> None:
-        """Close the open log files."""
+        """Close the open log files and release the lock (if held)."""
         for log in (self.evaluations, self.episodes, self._metrics):
             if log is not None:
                 log.close()
+        self.unlock()
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, state: dict[str, Any]) -> None:
-        """Write ``state`` with the checkpoint format version to ``checkpoints/latest.pt`` atomically."""
+        """Write ``state`` to ``checkpoints/latest.pt`` atomically, with the format version and a checksum.
+
+        ``state`` must be tensors and plain data (NumPy scalars are converted); see :func:`pack_checkpoint`.
+        """
         buf = io.BytesIO()
-        torch.save({"version": CHECKPOINT_VERSION, **state}, buf)
-        atomic_write_bytes(self.checkpoint_path, buf.getvalue())
+        torch.save(_plain({"version": CHECKPOINT_VERSION, **state}, ""), buf)
+        atomic_write_bytes(self.checkpoint_path, pack_checkpoint(buf.getvalue()))
 
     def load_checkpoint(self) -> dict[str, Any]:
-        """The latest checkpoint; ``FileNotFoundError`` if there is none, ``ValueError`` if its version differs."""
-        if not self.checkpoint_path.exists():
-            raise FileNotFoundError(f"no checkpoint in {self.path} (expected {self.checkpoint_path})")
-        state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
-        if state.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(
-                f"checkpoint {self.checkpoint_path} has version {state.get('version')}, expected {CHECKPOINT_VERSION}"
+        """The latest checkpoint, verified and loaded as tensors and plain data only.
+
+        ``FileNotFoundError`` if there is none; :class:`CheckpointError` (one line) if it was written by
+        another format version, is corrupted (checksum mismatch), holds anything but tensors and plain
+        data (never unpickled as code) or cannot be read.
+        """
+        path = self.checkpoint_path
+        if not path.exists():
+            raise FileNotFoundError(f"no checkpoint in {self.path} (expected {path})")
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise CheckpointError(f"checkpoint {path} could not be read ({_first_line(exc)})") from None
+        payload = unpack_checkpoint(data, path)
+        try:
+            state = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
+        except pickle.UnpicklingError as exc:
+            found = re.search(r"GLOBAL ([\w.]+)", str(exc))
+            what = f" (it references {found.group(1)})" if found else ""
+            raise CheckpointError(
+                f"checkpoint {path} holds more than tensors and plain data{what} and is not loaded: pimbrl never "
+                "runs code from a checkpoint; delete it, or start a new run"
+            ) from None
+        except Exception as exc:
+            raise CheckpointError(f"checkpoint {path} could not be read ({_first_line(exc)})") from None
+        if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
+            version = state.get("version") if isinstance(state, dict) else None
+            raise CheckpointError(
+                f"checkpoint {path} has schema version {version!r}, expected {CHECKPOINT_VERSION}: it was written by "
+                "another version of pimbrl; continue the run with that version, or start a new run"
             )
         return state
+
+
+def _describe_holder(fd: int) -> str:
+    """The holder recorded in a lock file (``pid 12 on host, since ...: command``)."""
+    try:
+        holder = json.loads(os.pread(fd, 65536, 0).decode())
+        command = " ".join(str(holder["command"]).split())
+        return f"pid {holder['pid']} on {holder['host']}, since {holder['since']}: {command}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder not recorded yet"
