@@ -43,8 +43,9 @@ class SemilinearPDE(Physics):
     x: np.ndarray
     linear: Stencil
     # u_t = L u - c (u^2)_x + f on a periodic grid: a circular shift maps solutions to solutions, and so does
-    # u(x) -> -u(-x) (L holds even derivatives only). The forcing is a fixed field, so a shifted or reflected
-    # state is simply another state on which the residual can be evaluated.
+    # u(x) -> -u(-x) (L holds even derivatives only); KS's discrete scheme keeps the reflection exactly (tested),
+    # Burgers' upwinding only approximately. Either way a shifted or reflected state is just another state on
+    # which the residual (exact for any state) can be evaluated: the symmetries make plausible states.
     shift_symmetric = True
     reflection_symmetric = True
     nonlinear_coef: float
