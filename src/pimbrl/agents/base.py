@@ -148,8 +148,7 @@ class Agent(ABC):
     def _check_finite(loss: torch.Tensor, what: str) -> None:
         if not torch.isfinite(loss):
             raise FloatingPointError(
-                f"{what} became {loss.item()}: training diverged. Lower the learning rates or check the rewards; "
-                "the last checkpoint of the run is intact and can be resumed with changed settings"
+                f"{what} became {loss.item()}: training diverged; lower the learning rates or check the rewards"
             )
 
 
