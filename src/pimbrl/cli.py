@@ -3,20 +3,50 @@
 from __future__ import annotations
 
 import argparse
+import difflib
+import errno
 import json
+import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-
-import numpy as np
+from typing import Any
 
 from .config import ConfigError, add_arguments, overrides_from_args, to_dict
 
-__all__ = ["build_parser", "main"]
+__all__ = ["budget_warnings", "build_parser", "main"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors suggest the closest choice for a mistyped one."""
+
+    def error(self, message: str) -> Any:
+        """Print the usage and ``message`` (with a suggestion where one is close) and exit with status 2."""
+        choice = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if choice:
+            options = re.findall(r"'([^']*)'", choice.group(2))
+            message += _suggestion(choice.group(1), options)
+        super().error(message)
+
+    def fail_unknown(self, unknown: list[str]) -> None:
+        """Exit with the error for the unrecognised arguments ``unknown``, suggesting the closest flag."""
+        flags = [o for a in self._actions for o in a.option_strings]
+        first = next((u.split("=")[0] for u in unknown if u.startswith("-")), None)
+        hint = _suggestion(first, flags, quote=False) if first else ""
+        super().error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
+
+
+def _suggestion(word: str, options: Sequence[str], quote: bool = True) -> str:
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
+    if not close:
+        return ""
+    return f" (did you mean {close[0]!r}?)" if quote else f" (did you mean {close[0]}?)"
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     import gymnasium as gym
+    import numpy as np
 
     from . import plotting
     from .envs import PhysicsEnv
@@ -82,17 +112,76 @@ def build_train_config(argv: list[str]):
     return config_from_argv(argv)
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
-    from .training import run_training
+def budget_warnings(cfg: Any) -> list[str]:
+    """What a run of ``cfg`` (a :class:`~pimbrl.training.TrainConfig`) will never do within its budget.
 
+    One line each: no agent update (the budget ends by ``update_after``), random actions only (by
+    ``warmup_steps``), no model (model-based runs, by ``dyna.start_model_after``), with the flag to change.
+    """
+    n = cfg.total_steps
+    out = []
+    if n <= cfg.update_after:
+        out.append(
+            f"--steps {n} ends before the first agent update (update_after = {cfg.update_after}): the agent is never "
+            f"trained; give --steps above {cfg.update_after} or a lower --update-after"
+        )
+    if n <= cfg.warmup_steps:
+        out.append(
+            f"--steps {n} ends within the random warm-up (warmup_steps = {cfg.warmup_steps}): every action is random; "
+            f"give --steps above {cfg.warmup_steps} or a lower --warmup-steps"
+        )
+    if cfg.method in ("mbrl", "pimbrl") and n <= cfg.dyna.start_model_after:
+        out.append(
+            f"--steps {n} ends before the model is first trained (dyna.start_model_after = {cfg.dyna.start_model_after}): "
+            f"the run never uses a model; give --steps above {cfg.dyna.start_model_after} or a lower --dyna.start-model-after"
+        )
+    return out
+
+
+def _check_run_dir(path: str | Path, flag: str = "--run-dir") -> None:
+    """Refuse a run directory that cannot be created or written, before anything is made.
+
+    The nearest existing ancestor must be a directory and writable (e.g. not under a regular file).
+    """
+    path = Path(path).absolute()
+    for existing in (path, *path.parents):
+        if not existing.exists():
+            continue
+        if not existing.is_dir():
+            raise ValueError(f"{existing} is a file, not a directory: {flag} {path} cannot be made; choose another {flag}")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise ValueError(f"{existing} is not writable (permission denied or a read-only disk); choose another {flag}")
+        return
+
+
+def _train(args: argparse.Namespace, run: Any) -> Any:
+    """Train ``run`` to its end; ``args.active_run`` and ``args.checkpoint_step`` say what a failure leaves."""
+    from .training import train
+
+    args.active_run = run
+    args.checkpoint_step = run.t if run.run_dir.checkpoint_path.exists() else None
+
+    def on_event(name: str, r: Any) -> None:
+        if name == "checkpoint":  # called once the checkpoint is written
+            args.checkpoint_step = r.t
+
+    return train(run, on_event=on_event)
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
     cfg = _train_config_from_args(args)
+    for line in budget_warnings(cfg):
+        print(f"pimbrl train: warning: {line}", file=sys.stderr)
     if args.print_config:  # the resolved configuration (defaults, preset, overrides); nothing is trained
         print(json.dumps(to_dict(cfg), indent=2))
         return 0
     run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method, cfg.agent, cfg.seed)
+    _check_run_dir(run_dir)
+    from .training import create_run
+
     print(f"run directory: {run_dir}", file=sys.stderr)
-    summary = run_training(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
-    _print_summary(run_dir, summary)
+    run = create_run(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
+    _print_summary(run_dir, _train(args, run))
     return 0
 
 
@@ -114,7 +203,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         print(f"{args.run_dir} has already finished ({run.t:,d} steps); nothing to do")
         return 0
     print(f"resuming {args.run_dir} at step {run.t:,d}", file=sys.stderr)
-    _print_summary(args.run_dir, train(run))
+    _print_summary(args.run_dir, _train(args, run))
     return 0
 
 
@@ -145,6 +234,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from . import plotting
     from .training import RunDirectory
 
@@ -208,7 +299,7 @@ def _seed_list(text: str) -> list[int]:
 
 
 def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
-    from .experiments.compare import compare
+    from .experiments.compare import compare, plan_runs
     from .simulate import resolve_env_id
     from .training.cli_args import parse_train_args
 
@@ -220,15 +311,25 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
             if key in overrides:
                 raise ValueError(f"give {flag} once: as a compare option or after --, not both")
             overrides[key] = value
+    seeds = _seed_list(args.seeds)
+    if not args.no_run:
+        _check_run_dir(args.run_dir)
+        warned = set()
+        for spec in plan_runs(env_id, methods, seeds[:1], Path(args.run_dir), overrides):
+            for line in budget_warnings(spec.config):
+                if (spec.label, line) not in warned:
+                    warned.add((spec.label, line))
+                    print(f"pimbrl compare: warning: {spec.label}: {line}", file=sys.stderr)
     result = compare(
         env_id,
         methods,
-        _seed_list(args.seeds),
+        seeds,
         args.run_dir,
         overrides,
         jobs=args.jobs,
         threshold=args.threshold,
         run=not args.no_run,
+        rerun=args.rerun,
     )
     thr = result["threshold"]
     print(f"{env_id}: threshold {thr}")
@@ -261,6 +362,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from .experiments.sweep import load_sweep, run_sweep
 
     spec = load_sweep(args.config)  # run_sweep resolves every trial's configuration before anything runs
+    _check_run_dir(args.run_dir)
     use_ray = False if args.no_ray else (True if args.address else None)
     result = run_sweep(
         spec, args.run_dir, use_ray=use_ray, address=args.address, num_cpus=args.cpus, log=lambda m: print(m, flush=True)
@@ -284,6 +386,8 @@ def _cmd_figure(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.dirs[0]) / f"{args.kind}.png"
     if args.kind != "curves" and len(args.dirs) != 1:
         raise ValueError(f"`pimbrl figure {args.kind}` takes one directory, got {len(args.dirs)}")
+    if args.kind in ("ks-contours", "burgers", "rollouts"):
+        figures.check_fits(args.kind, args.dirs[0])  # before the run is loaded
     if args.kind == "ks-contours":
         figures.ks_contours(args.dirs[0], out)
     elif args.kind == "burgers":
@@ -300,7 +404,7 @@ def _cmd_figure(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``pimbrl`` argument parser with one subcommand per command; each sets ``func`` to its handler."""
-    parser = argparse.ArgumentParser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
+    parser = _Parser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("simulate", help="run one episode with a simple policy, print the return and plot it")
@@ -385,6 +489,12 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--steps", type=int, default=None, help="real steps of every run")
     cp.add_argument("--threshold", type=float, default=None, help="return that counts as solved (default: the preset's)")
     cp.add_argument("--no-run", action="store_true", help="start nothing: summarise the runs as they are (finished or not)")
+    cp.add_argument(
+        "--rerun",
+        action="store_true",
+        help="a run directory that holds a run of another configuration (e.g. another --steps) is moved aside "
+        "(to seed<k>.replaced-<time>) and trained again; without it, that is an error",
+    )
     cp.set_defaults(func=_cmd_compare, takes_extra=True)
 
     sw = sub.add_parser(
@@ -416,30 +526,96 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
+    return parser
+
+
+#: what to do about an operating-system error, by errno
+_OS_FIXES = {
+    errno.ENOSPC: "free some disk space or choose a --run-dir on another disk",
+    errno.EDQUOT: "free some space within your disk quota or choose a --run-dir on another disk",
+    errno.EROFS: "the disk is read-only: choose a --run-dir on a writable disk",
+    errno.EACCES: "check the permissions of that path, or choose a --run-dir where you can write",
+    errno.EPERM: "check the permissions of that path, or choose a --run-dir where you can write",
+    errno.ENOTDIR: "a part of that path is a file, not a directory: choose another path",
+    errno.EISDIR: "that path is a directory, not a file",
+}
+
+
+def _is_environment_error(exc: OSError) -> bool:
+    """An error of the disk or the file system (reported as a message), not of the program (a traceback)."""
+    return exc.filename is not None or exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+def _os_message(exc: OSError) -> str:
+    what = exc.strerror or str(exc)
+    where = f": {exc.filename}" if exc.filename is not None else ""
+    fix = _OS_FIXES.get(exc.errno or 0, "check that path and the disk")
+    return f"{what}{where}; {fix}"
+
+
+def _checkpoint_note(args: argparse.Namespace) -> str:
+    """What a failed or interrupted run leaves: whether it has a checkpoint, at which step, and how to go on."""
+    run = getattr(args, "active_run", None)
+    if run is None:
+        if args.command in ("compare", "sweep"):
+            return "; the same command again continues: finished runs are kept, interrupted ones resume"
+        return ""
+    path = run.run_dir.path
+    step = getattr(args, "checkpoint_step", None)
+    if step is not None and run.run_dir.checkpoint_path.exists():
+        return f"; the last checkpoint (step {step:,d}) is intact: `pimbrl resume {path}` continues from it"
+    return (
+        f"; no checkpoint was written yet (the first is due at step {run.cfg.checkpoint_every:,d}): "
+        f"`pimbrl resume {path}` starts the run over"
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``pimbrl`` command line on ``argv`` (default: ``sys.argv[1:]``) and return the exit status."""
+    """Run the ``pimbrl`` command line on ``argv`` (default: ``sys.argv[1:]``) and return the exit status.
+
+    A bad input, a disk or file-system error (with the path) and a diverging run end with one line,
+    ``pimbrl <command>: error: <problem>; <fix>``, and exit status 2.
+    """
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
     if "--" in argv:  # everything after -- is passed through (compare -> train)
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        sub = _subparser(parser, args.command)
+        if isinstance(sub, _Parser):
+            sub.fail_unknown(unknown)
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     if extra and not getattr(args, "takes_extra", False):
         parser.error(f"`pimbrl {args.command}` takes no arguments after --")
     steps = getattr(args, "steps", None)
     if isinstance(steps, int) and steps < 1:  # config-driven commands default to an UNSET sentinel
         parser.error("--steps must be >= 1")
+    prefix = f"pimbrl {args.command}: error:"
     try:
         return int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
-    except (ConfigError, ValueError, FileNotFoundError, FileExistsError) as exc:
-        print(f"pimbrl {args.command}: error: {exc}", file=sys.stderr)
+    except (ConfigError, ValueError) as exc:
+        print(f"{prefix} {exc}", file=sys.stderr)
+        return 2
+    except FloatingPointError as exc:  # a diverging run
+        print(f"{prefix} {exc}{_checkpoint_note(args)}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        if _is_environment_error(exc):
+            print(f"{prefix} {_os_message(exc)}{_checkpoint_note(args)}", file=sys.stderr)
+        elif isinstance(exc, (FileNotFoundError, FileExistsError)):  # raised by pimbrl with a message
+            print(f"{prefix} {exc}", file=sys.stderr)
+        else:
+            raise
         return 2
     except KeyboardInterrupt:
-        print(
-            f"pimbrl {args.command}: interrupted; the last checkpoint is intact (`pimbrl resume` continues from it)",
-            file=sys.stderr,
-        )
+        print(f"pimbrl {args.command}: interrupted{_checkpoint_note(args)}", file=sys.stderr)
         return 130
 
 

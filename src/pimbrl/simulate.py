@@ -29,8 +29,12 @@ def resolve_env_id(name: str) -> str:
     """Map an alias (``ks``, ``burgers``, ``cartpole``, ``pendulum``) or a registered id to a Gymnasium id."""
     env_id = ENV_ALIASES.get(name.lower(), name)
     if env_id not in gym.registry:
+        import difflib
+
         known = ", ".join(sorted(ENV_ALIASES))
-        raise ValueError(f"unknown environment {name!r}: use one of {known} or a registered Gymnasium id")
+        close = difflib.get_close_matches(name, [*ENV_ALIASES, *gym.registry], n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown environment {name!r}{hint}: use one of {known} or a registered Gymnasium id")
     return env_id
 
 

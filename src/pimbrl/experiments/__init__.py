@@ -5,11 +5,27 @@
 * :mod:`.sweep` — grids of runs, in-process or on Ray (`pimbrl sweep`);
 * :mod:`.figures` — the paper's figures from run directories (`pimbrl figure`).
 
-The package namespace exports the model-eval entry points; import the others from their modules
+The package namespace exports the model-eval entry points (imported on first access: the settings,
+:mod:`.model_eval_config`, import without torch); import the others from their modules
 (``pimbrl.experiments.compare``, ...). Ray is imported only when a sweep runs on it.
 """
 
-from .model_eval import DEFAULTS as MODEL_EVAL_DEFAULTS
-from .model_eval import ModelEvalConfig, run_model_eval
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from .model_eval_config import DEFAULTS as MODEL_EVAL_DEFAULTS
+from .model_eval_config import ModelEvalConfig
+
+if TYPE_CHECKING:
+    from .model_eval import run_model_eval
 
 __all__ = ["MODEL_EVAL_DEFAULTS", "ModelEvalConfig", "run_model_eval"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "run_model_eval":
+        from .model_eval import run_model_eval
+
+        return run_model_eval
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

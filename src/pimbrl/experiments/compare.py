@@ -15,6 +15,16 @@ pimbrl runs and not to the mfrl ones, an agent field of SAC only to SAC runs, an
 (:func:`~pimbrl.training.config.inapplicable_reason`). An override that applies to none of the runs is an
 error.
 
+A run directory that already holds a run (finished or interrupted) is reused only if its configuration
+is the one requested; otherwise :func:`compare` stops with an error naming the run and the fields that
+differ, and ``rerun=True`` (``pimbrl compare --rerun``) moves such a run aside, to
+``DIR/<method>/seed<k>.replaced-<time>``, and trains it again.
+
+While the runs train, one status line per running child (steps done of the budget, last test return,
+steps per second) is read from its run directory and shown on stderr: refreshed every few seconds on a
+terminal, as plain lines at most every 30 s otherwise. Each child's own output goes to
+``DIR/<method>/seed<k>/compare.log``.
+
 Outputs: ``curves.png`` (per method: the mean over seeds of the mean test return, with the band from the
 lowest to the highest test episode of any seed), ``summary.csv`` (per run and per method: steps to the
 threshold, final and best mean test return, wall-clock, updates and the update-to-data ratio) and
@@ -34,17 +44,21 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ConfigError, to_dict
-from ..training import RunDirectory, TrainConfig
+from ..config import ConfigError, from_dict, to_dict
 from ..training.cli_args import parse_train_args
-from ..training.config import inapplicable_reason, resolve_config, typed_overrides
+from ..training.config import TrainConfig, did_you_mean, inapplicable_reason, resolve_config, typed_overrides
+from ..training.rundir import RunDirectory
 from ._files import atomic_write_bytes
 
 __all__ = [
+    "CHILD_LOG",
     "COMPARE_METHODS",
     "REQUEST_FILE",
     "RunSpec",
+    "check_reuse",
+    "child_status",
     "compare",
+    "config_differences",
     "plan_runs",
     "run_all",
     "step_ratio",
@@ -55,6 +69,11 @@ __all__ = [
 COMPARE_METHODS = ("mfrl", "mbrl", "pimbrl", "mfrl-matched")
 #: the file in a new run's directory that hands its configuration to the child process
 REQUEST_FILE = "config.request.json"
+#: the file in a run's directory that takes its child process's output
+CHILD_LOG = "compare.log"
+#: seconds between status refreshes: on a terminal, and as plain lines otherwise
+STATUS_EVERY_TTY = 2.0
+STATUS_EVERY_PLAIN = 30.0
 
 
 @dataclass(frozen=True)
@@ -104,7 +123,9 @@ def plan_runs(
     agent = overrides.get("agent", TrainConfig.agent)
     for label in methods:
         if label not in COMPARE_METHODS:
-            raise ValueError(f"unknown method {label!r}: choose from {', '.join(COMPARE_METHODS)}")
+            raise ValueError(
+                f"unknown method {label!r}{did_you_mean(label, COMPARE_METHODS)}: choose from {', '.join(COMPARE_METHODS)}"
+            )
         method = "mfrl" if label == "mfrl-matched" else label
         fields: dict[str, Any] = {"method": method}
         if label == "mfrl-matched":  # the user's utd wins
@@ -125,19 +146,182 @@ def plan_runs(
     return specs
 
 
-def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] = print) -> list[RunSpec]:
+def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"agent.gamma": 0.99, ...}`` from a nested configuration dict."""
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        name = {"agent_config": "agent"}.get(key, key) if not prefix else key
+        if isinstance(value, dict) and key in ("agent_config", "dyna"):
+            out.update(_flat(value, f"{prefix}{name}."))
+        else:
+            out[f"{prefix}{name}"] = value
+    return out
+
+
+def config_differences(recorded: Any, requested: TrainConfig) -> list[str]:
+    """The fields in which a run's recorded configuration differs from ``requested``.
+
+    ``recorded`` is the ``config`` of a ``config.json``; each difference reads
+    ``"total_steps (300 there, 200 requested)"``. A configuration that cannot be read is one difference.
+    """
+    try:
+        there = _flat(json.loads(json.dumps(to_dict(from_dict(TrainConfig, dict(recorded))))))
+    except (ConfigError, TypeError, ValueError):
+        return ["the recorded configuration (unreadable)"]
+    wanted = _flat(json.loads(json.dumps(to_dict(requested))))
+    return [f"{k} ({there.get(k)!r} there, {wanted.get(k)!r} requested)" for k in wanted if there.get(k) != wanted.get(k)]
+
+
+def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[str], None] = print) -> None:
+    """Refuse to reuse a run (finished or interrupted) whose configuration is not the requested one.
+
+    Raises :class:`ConfigError` naming the first such run directory and the fields that differ; with
+    ``rerun`` each such run is moved aside (to ``<dir>.replaced-<time>``) so that it is trained again.
+    """
+    stale = []
+    for spec in specs:
+        run_dir = RunDirectory(spec.path)
+        if not run_dir.config_path.exists():
+            continue
+        try:
+            recorded = run_dir.read_config().get("config")
+        except ValueError:  # not JSON
+            recorded = None
+        diffs = config_differences(recorded, spec.config)
+        if diffs:
+            stale.append((spec, diffs))
+    if not stale:
+        return
+    if not rerun:
+        spec, diffs = stale[0]
+        more = f" (and {len(stale) - 1} more run(s) of this comparison)" if len(stale) > 1 else ""
+        raise ConfigError(
+            f"{spec.path} holds a run made with another configuration: {', '.join(diffs)}{more}; add --rerun to move "
+            "such runs aside and train them again, or choose another --run-dir"
+        )
+    for spec, diffs in stale:
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        target = spec.path.with_name(f"{spec.path.name}.replaced-{stamp}")
+        n = 1
+        while target.exists():
+            n += 1
+            target = spec.path.with_name(f"{spec.path.name}.replaced-{stamp}-{n}")
+        spec.path.rename(target)
+        log(f"moved {spec.path} aside to {target} ({', '.join(diffs)}); it runs again")
+
+
+def _last_row(path: Path) -> dict[str, str] | None:
+    """The last complete row of the CSV log ``path`` (its header and tail only are read); ``None`` if none."""
+    try:
+        with open(path, "rb") as fh:
+            header = fh.readline().decode(errors="replace").strip().split(",")
+            start = fh.tell()
+            fh.seek(0, 2)
+            fh.seek(max(start, fh.tell() - 8192))
+            tail = fh.read().decode(errors="replace")
+    except OSError:
+        return None
+    lines = tail.split("\n")[:-1]  # the part after the last newline is a row still being written
+    for line in reversed(lines):
+        values = line.strip().split(",")
+        if len(values) == len(header) and line.strip():
+            return dict(zip(header, values))
+    return None
+
+
+def _number(row: dict[str, str] | None, key: str) -> float | None:
+    try:
+        return None if row is None else float(row[key])
+    except (KeyError, ValueError):
+        return None
+
+
+def child_status(spec: RunSpec) -> str:
+    """One status line of a running child, read from its run directory.
+
+    ``"pimbrl seed 0: 12,400/200,000 steps  test return -63.20  41 steps/s"`` (what is known so far).
+    """
+    head = f"{spec.label} seed {spec.seed}: "
+    evaluation = _last_row(spec.path / "evaluations.csv")
+    metrics = _last_row(spec.path / "metrics.csv")
+    episode = _last_row(spec.path / "episodes.csv")
+    steps = [v for v in (_number(r, "step") for r in (evaluation, metrics, episode)) if v is not None]
+    if not steps:
+        return head + "starting"
+    parts = [f"{int(max(steps)):,d}/{spec.config.total_steps:,d} steps"]
+    test = _number(evaluation, "return_mean")
+    if test is not None:
+        parts.append(f"test return {test:.2f}")
+    sps = _number(metrics, "steps_per_s")
+    if sps is not None:
+        parts.append(f"{sps:,.0f} steps/s")
+    return head + "  ".join(parts)
+
+
+class _StatusLines:
+    """The running children's status lines on stderr: a live display on a terminal, plain lines otherwise."""
+
+    def __init__(self, enabled: bool) -> None:
+        from rich.console import Console
+
+        self.console = Console(stderr=True)
+        self.enabled = enabled
+        self.live: Any = None
+        self.last = time.monotonic()
+        if enabled and self.console.is_terminal:
+            from rich.live import Live
+
+            self.live = Live(console=self.console, auto_refresh=False, transient=True, redirect_stdout=True)
+            self.live.start()
+
+    def show(self, specs: Sequence[RunSpec]) -> None:
+        """Refresh the lines of ``specs`` (the running children), when due."""
+        if not self.enabled:
+            return
+        every = STATUS_EVERY_TTY if self.live is not None else STATUS_EVERY_PLAIN
+        now = time.monotonic()
+        if now - self.last < every:
+            return
+        self.last = now
+        lines = [child_status(spec) for spec in specs]
+        if self.live is not None:
+            from rich.text import Text
+
+            self.live.update(Text("\n".join(lines)), refresh=True)
+        else:
+            for line in lines:
+                print(line, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        """Stop the live display, if there is one."""
+        if self.live is not None:
+            self.live.stop()
+            self.live = None
+
+
+def _last_line(path: Path) -> str:
+    """The last non-empty line of a child's output file (``""`` if none)."""
+    try:
+        lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return ""
+    return lines[-1].strip() if lines else ""
+
+
+def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] = print, status: bool = True) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
     A new run's configuration is written to ``<run>/config.request.json`` and its process started as
     ``pimbrl train --config <that file> --run-dir <run> --quiet``; an interrupted run is resumed
-    (``pimbrl resume <run>``).
+    (``pimbrl resume <run>``). A child's output goes to ``<run>/compare.log``. With ``status``, one line
+    per running child is shown on stderr (:func:`child_status`).
     """
     pending = []
     for spec in specs:
-        status = RunDirectory(spec.path).status
-        if status == "finished":
+        run_status = RunDirectory(spec.path).status
+        if run_status == "finished":
             continue
-        if status is None:
+        if run_status is None:
             request = Path(spec.path) / REQUEST_FILE
             atomic_write_bytes(request, (json.dumps(to_dict(spec.config), indent=2) + "\n").encode())
             cmd = [sys.executable, "-m", "pimbrl.cli", "train", "--config", str(request), "--run-dir", str(spec.path), "--quiet"]
@@ -145,23 +329,38 @@ def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] 
             cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet"]
         pending.append((spec, cmd))
     failed: list[RunSpec] = []
-    running: list[tuple[RunSpec, subprocess.Popen]] = []
-    while pending or running:
-        while pending and len(running) < max(1, jobs):
-            spec, cmd = pending.pop(0)
-            log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
-            running.append((spec, subprocess.Popen(cmd)))
-        time.sleep(0.5)
-        for item in list(running):
-            spec, proc = item
-            if proc.poll() is None:
-                continue
-            running.remove(item)
-            if proc.returncode != 0:
-                failed.append(spec)
-                log(f"FAILED {spec.label} seed {spec.seed} (exit code {proc.returncode}); the others go on")
-            else:
-                log(f"done {spec.label} seed {spec.seed}")
+    running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
+    lines = _StatusLines(status and bool(pending))
+    try:
+        while pending or running:
+            while pending and len(running) < max(1, jobs):
+                spec, cmd = pending.pop(0)
+                log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
+                Path(spec.path).mkdir(parents=True, exist_ok=True)
+                out = open(Path(spec.path) / CHILD_LOG, "ab")  # noqa: SIM115 - closed when the child ends
+                running.append((spec, subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT), out))
+            time.sleep(0.5)
+            for item in list(running):
+                spec, proc, out = item
+                if proc.poll() is None:
+                    continue
+                running.remove(item)
+                out.close()
+                if proc.returncode != 0:
+                    failed.append(spec)
+                    child_log = Path(spec.path) / CHILD_LOG
+                    log(
+                        f"FAILED {spec.label} seed {spec.seed} (exit code {proc.returncode}): {_last_line(child_log)} "
+                        f"(its output: {child_log}); the others go on"
+                    )
+                else:
+                    log(f"done {spec.label} seed {spec.seed}")
+            lines.show([spec for spec, _, _ in running])
+    finally:
+        lines.close()
+        for _, proc, out in running:  # interrupted: the children get the same signal; wait for them
+            proc.wait()
+            out.close()
     return failed
 
 
@@ -255,11 +454,15 @@ def compare(
     threshold: float | None = None,
     log: Callable[[str], None] = print,
     run: bool = True,
+    rerun: bool = False,
+    status: bool = True,
 ) -> dict[str, Any]:
     """Run (what is missing of) a comparison and write its figure and tables.
 
     With ``run=False`` nothing is started: the runs are summarised as they stand (unfinished ones up to
-    their last evaluation).
+    their last evaluation). A run directory holding a run of another configuration is an error, or, with
+    ``rerun``, moved aside and trained again (:func:`check_reuse`). ``status``: live status lines of the
+    running children on stderr.
 
     ``overrides``: field paths -> values (``{"total_steps": 5000, "dyna.model_steps": 5}``; a list of
     `pimbrl train` flags is read as such), applied to the runs they fit (see :func:`plan_runs`).
@@ -269,8 +472,9 @@ def compare(
     root = Path(root)
     specs = plan_runs(env_id, methods, seeds, root, overrides)  # every configuration checked before anything runs
     if run:
+        check_reuse(specs, rerun=rerun, log=log)
         root.mkdir(parents=True, exist_ok=True)
-    failed = run_all(specs, jobs=jobs, log=log) if run else []
+    failed = run_all(specs, jobs=jobs, log=log, status=status) if run else []
     if threshold is None:
         threshold = resolve_config(env_id, {"method": "mfrl"}).threshold
     result = summarize_runs(specs, threshold)

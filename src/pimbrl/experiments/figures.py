@@ -27,7 +27,14 @@ from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 from ..training import Run
 
-__all__ = ["burgers_episodes", "ks_contours", "load_run", "model_error_histograms", "rollout_snapshots"]
+__all__ = ["burgers_episodes", "check_fits", "ks_contours", "load_run", "model_error_histograms", "rollout_snapshots"]
+
+
+#: the environment of each environment-specific figure: (id, name in messages)
+_FIGURE_ENVS = {
+    "ks-contours": ("pimbrl/KuramotoSivashinsky-v0", "Kuramoto-Sivashinsky"),
+    "burgers": ("pimbrl/Burgers-v0", "Burgers"),
+}
 
 
 def load_run(run_dir: str | Path) -> Run:
@@ -36,6 +43,25 @@ def load_run(run_dir: str | Path) -> Run:
     if not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{run_dir} has no checkpoint: train it first")
     return run
+
+
+def check_fits(kind: str, run_dir: str | Path) -> None:
+    """Raise ``ValueError`` where the figure ``kind`` cannot be drawn from the run in ``run_dir``.
+
+    Read from its ``config.json`` before anything is loaded: ``ks-contours`` needs a KS run, ``burgers`` a
+    Burgers run, ``rollouts`` an mbrl or pimbrl run. The message names the run's environment and method and
+    the figure that fits it.
+    """
+    cfg = training.RunDirectory(run_dir).read_config().get("config", {})
+    env, method = cfg.get("env"), cfg.get("method")
+    if kind in _FIGURE_ENVS:
+        want, name = _FIGURE_ENVS[kind]
+        if env != want:
+            other = [k for k, (e, _) in _FIGURE_ENVS.items() if e == env]
+            hint = f"; `pimbrl figure {other[0]}` draws that one" if other else ""
+            raise ValueError(f"`pimbrl figure {kind}` needs a {name} run; {run_dir} is a {env} run{hint}")
+    if kind == "rollouts" and method not in ("mbrl", "pimbrl"):
+        raise ValueError(f"`pimbrl figure rollouts` needs an mbrl or pimbrl run; {run_dir} is a {method} run, without a model")
 
 
 def _policy(trainer: Any) -> Any:
@@ -62,6 +88,7 @@ def _make_env(trainer: Run) -> tuple[gym.Env, Any, gym.spaces.Box]:
 
 def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Path:
     """Space-time contours of an uncontrolled and ``controlled`` agent-controlled KS test episodes."""
+    check_fits("ks-contours", run_dir)
     trainer = load_run(run_dir)
     env, physics, space = _make_env(trainer)
     states = _test_states(trainer, controlled + 1)
@@ -82,6 +109,7 @@ def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Pa
 
 def burgers_episodes(run_dir: str | Path, out: str | Path, seed: int = 0) -> Path:
     """Burgers: the state surface and the actions and rewards of a random-action and a controlled episode."""
+    check_fits("burgers", run_dir)
     trainer = load_run(run_dir)
     env, physics, space = _make_env(trainer)
     start = _test_states(trainer, 1)[0]
@@ -137,11 +165,21 @@ def model_error_histograms(model_eval_dir: str | Path, out: str | Path) -> Path:
 
 
 def rollout_snapshots(run_dir: str | Path, out: str | Path, lengths: Sequence[int] = (3, 8, 40, 120), n_states: int = 3) -> Path:
-    """Model-predicted states after ``l`` chained model steps against the true environment (same actions)."""
+    """Model-predicted states after ``l`` chained model steps against the true environment (same actions).
+
+    A run whose model was never trained (its budget ended before ``dyna.start_model_after``) is refused.
+    """
+    check_fits("rollouts", run_dir)
     trainer = load_run(run_dir)
     model = trainer.transition_model
-    if model is None:
+    if model is None or trainer.model is None:
         raise ValueError(f"{run_dir} is a {trainer.cfg.method} run without a model; use an mbrl or pimbrl run")
+    if trainer.model.trainer.steps == 0:
+        start = trainer.cfg.dyna.start_model_after
+        raise ValueError(
+            f"{run_dir}: its model was never trained (the run has {trainer.t:,d} steps and its model starts after "
+            f"dyna.start_model_after = {start}); train a run with more --steps or a lower --dyna.start-model-after"
+        )
     physics = trainer.physics
     task = trainer.task
     states = _test_states(trainer, n_states)

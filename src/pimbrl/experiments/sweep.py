@@ -50,7 +50,7 @@ from typing import Any
 from ..config import ConfigError, typed_value
 from ..training import METHODS, RunDirectory, TrainConfig
 from ..training.cli_args import parse_train_args
-from ..training.config import inapplicable_reason, resolve_config, typed_overrides
+from ..training.config import did_you_mean, inapplicable_reason, resolve_config, typed_overrides
 from ._files import atomic_write_bytes
 
 __all__ = ["SweepSpec", "Trial", "execute_trial", "load_sweep", "plan_trials", "ray_available", "run_sweep"]
@@ -106,12 +106,18 @@ def load_sweep(path: str | Path) -> SweepSpec:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"sweep file {path} does not exist")
-    text = path.read_text()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text file ({exc}); a sweep file is JSON or TOML") from None
     if path.suffix == ".toml":
         if sys.version_info >= (3, 11):
             import tomllib
 
-            data = tomllib.loads(text)
+            try:
+                data = tomllib.loads(text)
+            except tomllib.TOMLDecodeError as exc:
+                raise ConfigError(f"{path}: not valid TOML ({exc})") from None
         else:  # pragma: no cover - Python 3.10 has no tomllib
             raise ConfigError(f"{path}: TOML sweep files need Python >= 3.11; use JSON")
     else:
@@ -123,15 +129,28 @@ def load_sweep(path: str | Path) -> SweepSpec:
         raise ConfigError(f"{path}: a sweep file is an object (a table) of keys, got {type(data).__name__}")
     unknown = set(data) - _KEYS
     if unknown:
-        raise ConfigError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_KEYS))}")
+        names = sorted(unknown)
+        raise ConfigError(
+            f"{path}: unknown key(s) {', '.join(names)}{did_you_mean(names[0], _KEYS)}; allowed: {', '.join(sorted(_KEYS))}"
+        )
     for key in ("envs", "methods", "seeds"):
-        if not isinstance(data.get(key), list) or not data[key]:
-            raise ConfigError(f"{path}: '{key}' must be a non-empty list")
+        if key not in data:
+            raise ConfigError(f"{path}: '{key}' is missing: it must be a non-empty list")
+        if not isinstance(data[key], list) or not data[key]:
+            raise ConfigError(f"{path}: '{key}' must be a non-empty list, got {data[key]!r}")
     if any(not isinstance(e, str) for e in data["envs"]):
         raise ConfigError(f"{path}: 'envs' must be a list of environment names, got {data['envs']!r}")
+    _check_envs(path, data["envs"])
+    if any(not isinstance(m, str) for m in data["methods"]):
+        raise ConfigError(f"{path}: 'methods' must be a list of method names, got {data['methods']!r}")
     bad = [m for m in data["methods"] if m not in METHODS]
     if bad:
-        raise ConfigError(f"{path}: unknown method(s) {', '.join(map(repr, bad))} in 'methods': choose from {', '.join(METHODS)}")
+        raise ConfigError(
+            f"{path}: unknown method(s) {', '.join(map(repr, bad))} in 'methods'{did_you_mean(bad[0], METHODS)}: "
+            f"choose from {', '.join(METHODS)}"
+        )
+    if not isinstance(data.get("name", ""), str):
+        raise ConfigError(f"{path}: 'name' must be a string, got {data['name']!r}")
     for seed in data["seeds"]:
         if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
             raise ConfigError(f"{path}: 'seeds' must be a list of integers >= 0, got {seed!r}")
@@ -152,9 +171,9 @@ def load_sweep(path: str | Path) -> SweepSpec:
             raise ConfigError(f"'overrides' must map configuration fields to values, got {overrides!r}")
         overrides = typed_overrides(overrides)
         train_args = data.get("train_args", [])
-        if not isinstance(train_args, list):
-            raise ConfigError(f"'train_args' must be a list of `pimbrl train` flags, got {train_args!r}")
-        from_args = parse_train_args([str(a) for a in train_args])
+        if not isinstance(train_args, list) or any(not isinstance(a, str) for a in train_args):
+            raise ConfigError(f"'train_args' must be a list of `pimbrl train` flags (strings), got {train_args!r}")
+        from_args = parse_train_args(train_args)
         for key in from_args.keys() & overrides.keys():
             raise ConfigError(f"{key} is set both in 'train_args' and in 'overrides'")
         overrides.update(from_args)
@@ -165,7 +184,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
                 raise ConfigError(f"{key} is both a grid key and an override")
         threshold = data.get("threshold")
         if threshold is not None:
-            threshold = typed_value(float, threshold, "threshold")
+            threshold = typed_value(float, threshold, "'threshold'")
             if "threshold" in overrides:
                 raise ConfigError("threshold is set both as 'threshold' and as an override")
     except ConfigError as exc:
@@ -179,6 +198,17 @@ def load_sweep(path: str | Path) -> SweepSpec:
         overrides=overrides,
         threshold=threshold,
     )
+
+
+def _check_envs(path: Path, envs: Sequence[str]) -> None:
+    """Every name of a sweep's 'envs' must be an environment; the error names the file and the key."""
+    from ..simulate import resolve_env_id
+
+    for env in envs:
+        try:
+            resolve_env_id(env)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: 'envs': {exc}") from None
 
 
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:

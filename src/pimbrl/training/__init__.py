@@ -1,14 +1,53 @@
-"""Training: configuration and presets, the loop (one function, :func:`train`), its components, run directories."""
+"""Training: configuration and presets, the loop (one function, :func:`train`), its components, run directories.
 
-from .collector import Collector
-from .config import METHODS, PRESETS, DynaConfig, TrainConfig, resolve_config
-from .dyna import PHASES, DynaModel
-from .evaluation import EvalResult, Evaluator
-from .logger import RunLogger
-from .loop import Run, RunSummary, UpdateSchedule, build_run, create_run, open_run, train
-from .rundir import RunDirectory, steps_to_threshold
-from .runs import load_run, resume_training, run_training
-from .streams import STREAM_KEYS, RandomStreams
+The names below are imported on first access: the configuration (:mod:`.config`, :mod:`.cli_args`)
+imports without torch, so that the command line starts fast; the loop and its components import torch.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .collector import Collector
+    from .config import METHODS, PRESETS, DynaConfig, TrainConfig, resolve_config
+    from .dyna import PHASES, DynaModel
+    from .evaluation import EvalResult, Evaluator
+    from .logger import RunLogger
+    from .loop import Run, RunSummary, UpdateSchedule, build_run, create_run, open_run, train
+    from .rundir import RunDirectory, steps_to_threshold
+    from .runs import load_run, resume_training, run_training
+    from .streams import STREAM_KEYS, RandomStreams
+
+#: public name -> the submodule that defines it
+_WHERE = {
+    "Collector": "collector",
+    "METHODS": "config",
+    "PRESETS": "config",
+    "DynaConfig": "config",
+    "TrainConfig": "config",
+    "resolve_config": "config",
+    "PHASES": "dyna",
+    "DynaModel": "dyna",
+    "EvalResult": "evaluation",
+    "Evaluator": "evaluation",
+    "RunLogger": "logger",
+    "Run": "loop",
+    "RunSummary": "loop",
+    "UpdateSchedule": "loop",
+    "build_run": "loop",
+    "create_run": "loop",
+    "open_run": "loop",
+    "train": "loop",
+    "RunDirectory": "rundir",
+    "steps_to_threshold": "rundir",
+    "load_run": "runs",
+    "resume_training": "runs",
+    "run_training": "runs",
+    "STREAM_KEYS": "streams",
+    "RandomStreams": "streams",
+}
 
 __all__ = [
     "METHODS",
@@ -37,3 +76,9 @@ __all__ = [
     "steps_to_threshold",
     "train",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WHERE:
+        return getattr(import_module(f".{_WHERE[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -16,7 +16,7 @@ import json
 from collections.abc import Sequence
 from typing import Any
 
-from ..agents import AgentConfig
+from ..agents.config import AgentConfig
 from ..config import ConfigError, add_arguments, overrides_from_args
 from .config import DynaConfig, TrainConfig, resolve_config
 

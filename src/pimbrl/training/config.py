@@ -13,15 +13,17 @@ nothing for the chosen method, agent or environment (``dyna.*`` with mfrl, SAC's
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import importlib
+import inspect
 import json
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..agents import AGENTS, AgentConfig
+from ..agents.config import AGENT_NAMES, AgentConfig
 from ..config import (
     ConfigError,
     field_type,
@@ -40,7 +42,11 @@ __all__ = [
     "PRESETS",
     "DynaConfig",
     "TrainConfig",
+    "check_env_kwargs",
+    "check_tensorboard",
     "config_from_dict",
+    "did_you_mean",
+    "field_paths",
     "inapplicable_reason",
     "is_pde_env",
     "load_config_file",
@@ -126,7 +132,7 @@ class TrainConfig:
 
     env: str = param("pimbrl/Pendulum-v0", "environment id (pimbrl/... or any Gymnasium id)")
     method: str = param("mfrl", "mfrl (model-free), mbrl (data-only model), pimbrl (physics-informed model)", one_of(*METHODS))
-    agent: str = param("td3", "off-policy agent", one_of(*AGENTS))
+    agent: str = param("td3", "off-policy agent", one_of(*AGENT_NAMES))
     seed: int = param(0, "seeds networks, exploration, replay sampling and the environment", non_negative())
     total_steps: int = param(15_000, "real environment steps", positive())
     warmup_steps: int = param(1_000, "initial steps with uniformly random actions", non_negative())
@@ -289,6 +295,67 @@ def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | N
     return None
 
 
+def did_you_mean(word: str, candidates: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the candidate closest to ``word``, or ``""`` where none is close."""
+    close = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def field_paths() -> list[str]:
+    """Every field path an override can set: ``utd``, ``agent.gamma``, ``dyna.rollout_length``, ..."""
+    paths = [f.name for f in dataclasses.fields(TrainConfig) if f.name not in ("agent_config", "dyna")]
+    paths += [f"agent.{f.name}" for f in dataclasses.fields(AgentConfig)]
+    paths += [f"dyna.{f.name}" for f in dataclasses.fields(DynaConfig)]
+    return paths
+
+
+def check_tensorboard() -> None:
+    """Raise :class:`ConfigError` where TensorBoard events cannot be written (no tensorboard package).
+
+    Checked when a configuration with ``tensorboard = true`` is resolved, before a run directory exists.
+    """
+    try:
+        import torch.utils.tensorboard  # noqa: F401
+    except ImportError:
+        raise ConfigError(
+            "tensorboard = true needs the tensorboard package: pip install 'pimbrl[tensorboard]' "
+            "(or pip install tensorboard), or leave --tensorboard out"
+        ) from None
+
+
+def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
+    """Raise :class:`ConfigError` for a keyword argument that the environment ``env`` does not take.
+
+    The names are read from the signature of the environment's class (of its task, for pimbrl
+    environments); an environment that takes ``**kwargs``, or one that cannot be inspected, is not checked.
+    """
+    if not kwargs:
+        return
+    import gymnasium as gym
+
+    try:
+        entry = gym.spec(env).entry_point
+        if isinstance(entry, str):
+            module, _, name = entry.partition(":")
+            entry = getattr(importlib.import_module(module), name)
+        target: Any = getattr(entry, "task_class", None) or entry
+        params = inspect.signature(target).parameters.values()
+    except (gym.error.Error, ImportError, AttributeError, TypeError, ValueError):
+        return
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return
+    names = [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name != "self"]
+    for key in kwargs:
+        if key not in names:
+            takes = ", ".join(names) if names else "none"
+            raise ConfigError(f"env_kwargs: {env} takes no keyword argument {key!r}{did_you_mean(key, names)}; it takes: {takes}")
+
+
+def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
+    if isinstance(value, str) and value not in choices:
+        raise ConfigError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}{did_you_mean(value, choices)}")
+
+
 def typed_overrides(overrides: Mapping[str, Any]) -> dict[str, Any]:
     """``overrides`` (dotted field paths -> values), checked and typed.
 
@@ -301,7 +368,11 @@ def typed_overrides(overrides: Mapping[str, Any]) -> dict[str, Any]:
             raise ConfigError("env is not an override: it is given on its own (the first argument)")
         if path.startswith("agent_config."):
             path = "agent." + path[len("agent_config.") :]
-        out[path] = typed_value(field_type(TrainConfig, path), value, path)
+        try:
+            tp = field_type(TrainConfig, path)
+        except ConfigError as exc:
+            raise ConfigError(f"{exc}{did_you_mean(path, field_paths())}") from None
+        out[path] = typed_value(tp, value, path)
     return out
 
 
@@ -327,7 +398,9 @@ def resolve_config(
     flat = typed_overrides(flat)
     method = flat.get("method", TrainConfig.method)
     agent = flat.get("agent", TrainConfig.agent)
-    if method in METHODS and agent in AGENTS:  # otherwise validation names the bad method or agent below
+    _check_choice("method", method, METHODS)
+    _check_choice("agent", agent, AGENT_NAMES)
+    if method in METHODS and agent in AGENT_NAMES:  # otherwise validation names the bad method or agent below
         for path in flat:
             reason = inapplicable_reason(env, method, agent, path)
             if reason is not None:
@@ -349,7 +422,15 @@ def resolve_config(
         raise ConfigError(str(exc)) from None
     cfg = dataclasses.replace(cfg, agent_config=agent_cfg, dyna=dyna_cfg)
     validate(cfg)
+    _check_runnable(cfg)
     return cfg
+
+
+def _check_runnable(cfg: TrainConfig) -> None:
+    """What validation of the fields cannot see: the environment's keyword arguments, TensorBoard."""
+    check_env_kwargs(cfg.env, cfg.env_kwargs)
+    if cfg.tensorboard:
+        check_tensorboard()
 
 
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
@@ -379,6 +460,7 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
         from_dict(TrainConfig, top), agent_config=from_dict(AgentConfig, agent), dyna=from_dict(DynaConfig, dyna)
     )
     validate(cfg)
+    _check_runnable(cfg)
     return cfg
 
 

@@ -1,14 +1,39 @@
-"""Progress display: a rich progress bar on a terminal, plain log lines otherwise."""
+"""Progress display: a rich progress bar on a terminal, plain log lines otherwise.
+
+The bar fits the terminal: on a narrow one it drops the elapsed time, then the bar itself, then the speed,
+in that order, and the label names the environment briefly (``pimbrl/KuramotoSivashinsky-v0`` -> ``KS``).
+"""
 
 from __future__ import annotations
 
+import re
 import sys
 from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    Progress,
+    ProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Column
 
-__all__ = ["TrainingProgress"]
+__all__ = ["TrainingProgress", "short_label"]
+
+#: short names of long environment ids in the bar's label
+_SHORT = {"KuramotoSivashinsky": "KS"}
+
+
+def short_label(label: str) -> str:
+    """``label`` with each ``pimbrl/<Name>-v<k>`` shortened to ``<Name>`` (``KS`` for Kuramoto-Sivashinsky)."""
+    return re.sub(r"pimbrl/([A-Za-z]+)-v\d+", lambda m: _SHORT.get(m.group(1), m.group(1)), label)
+
+
+def _text(template: str, width: int) -> TextColumn:
+    return TextColumn(template, table_column=Column(no_wrap=True, min_width=width))
 
 
 class TrainingProgress:
@@ -18,21 +43,47 @@ class TrainingProgress:
         self.console = Console(stderr=True)
         self.interactive = enabled and self.console.is_terminal
         self.enabled = enabled
-        self.label = label
+        self.label = short_label(label)
+        self.total = total
         self._progress: Progress | None = None
         if self.interactive:
-            self._progress = Progress(
-                TextColumn("[bold]{task.description}"),
-                BarColumn(),
-                MofNCompleteColumn(),
-                TextColumn("eval {task.fields[eval]}"),
-                TextColumn("{task.fields[sps]} steps/s"),
-                TimeElapsedColumn(),
-                TimeRemainingColumn(),
-                console=self.console,
-            )
-            self._task = self._progress.add_task(label, total=total, completed=start, eval="-", sps="-")
+            self._progress = self.build(self.console)
+            self._task = self._progress.add_task(self.label, total=total, completed=start, eval="-", sps="-")
             self._progress.start()
+
+    def build(self, console: Console) -> Progress:
+        """A progress display whose columns fit the width of ``console`` (without a task)."""
+        steps = len(f"{self.total:,d}")
+        # (name, width) in order of importance; each column is separated from the next by one space
+        wanted = [
+            ("steps", 2 * steps + 1),
+            ("eval", len("eval -12345.67")),
+            ("label", min(len(self.label), 32)),
+            ("remaining", 7),
+            ("sps", len("12,345 steps/s")),
+            ("bar", 10),
+            ("elapsed", 7),
+        ]
+        room = console.width - 1
+        chosen: dict[str, int] = {}
+        for name, width in wanted:
+            if sum(chosen.values()) + len(chosen) + width <= room:
+                chosen[name] = width
+        if "bar" in chosen:  # the bar takes what is left, up to 40 columns
+            chosen["bar"] = min(40, room - (sum(chosen.values()) - chosen["bar"]) - (len(chosen) - 1))
+        columns: dict[str, ProgressColumn] = {
+            "label": TextColumn(
+                "[bold]{task.description}", table_column=Column(no_wrap=True, overflow="ellipsis", max_width=chosen.get("label"))
+            ),
+            "bar": BarColumn(bar_width=chosen.get("bar")),
+            "steps": _text("{task.completed:,.0f}/{task.total:,.0f}", 0),
+            "eval": _text("eval {task.fields[eval]}", 0),
+            "sps": _text("{task.fields[sps]} steps/s", 0),
+            "elapsed": TimeElapsedColumn(),
+            "remaining": TimeRemainingColumn(),
+        }
+        order = ["label", "bar", "steps", "eval", "sps", "elapsed", "remaining"]
+        return Progress(*(columns[name] for name in order if name in chosen), console=console)
 
     def update(self, step: int, sps: float | None = None, eval_return: float | None = None) -> None:
         """Move the bar to ``step`` and show the speed and last evaluation return if given (no-op without a bar)."""

@@ -1,0 +1,46 @@
+"""Settings of `pimbrl model-eval`: plain data, importable without torch (for the command line's flags)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from ..config import non_negative, one_of, param, positive
+
+__all__ = ["DEFAULTS", "ModelEvalConfig"]
+
+
+@dataclass(frozen=True)
+class ModelEvalConfig:
+    """Settings of `pimbrl model-eval` (defaults per environment in :data:`DEFAULTS`)."""
+
+    transitions: int = param(2_000, "real transitions collected with a random policy (training + in-sample test)", positive())
+    test_transitions: int = param(500, "held-out in-sample and out-of-sample test transitions (each)", positive())
+    steps: int = param(2_000, "gradient steps of each model", positive())
+    batch_size: int = param(256, "batch size of the data and of the physics loss", positive())
+    lr: float = param(1e-3, "Adam learning rate", positive())
+    n_intermediate: int = param(5, "PDE models: intermediate states per control step", positive())
+    scheme: str = param(
+        "etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'")
+    )
+    physics_weight: float = param(1.0, "w_E, weight of the physics loss", non_negative())
+    imagined_length: int = param(3, "length of the imagined rollouts that supply unlabelled states", non_negative())
+    refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", positive())
+    seed: int = param(0, "seed of data collection, initialisation and batches", non_negative())
+    threads: int = param(1, "torch threads", positive())
+    # the study (pimbrl.experiments.model_study): used when ``labels`` is given
+    labels: tuple[int, ...] = param((), "study: numbers of labelled transitions to compare, e.g. 0,100,300,1000")
+    seeds: int = param(1, "study: seeds (seed, seed + 1, ...)", positive())
+    seed_states: int = param(500, "study: observed states the physics loss may start from without labels", positive())
+    sources: str = param("train,imagined", "physics-loss sources: train, imagined, symmetry, scaled, noise, box")
+    units: str = param("substep", "units of the physics loss: substep or step", one_of("substep", "step"))
+    model: str = param("convlstm", "PDE model: convlstm or equivariant", one_of("convlstm", "equivariant"))
+    rollout_lengths: tuple[int, ...] = param((1,), "study: chained model steps at which the error is measured, e.g. 1,3,8")
+
+
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "pimbrl/KuramotoSivashinsky-v0": {"transitions": 6_000, "steps": 3_000},
+    "pimbrl/Burgers-v0": {"transitions": 1_200, "steps": 3_000},
+    "pimbrl/Pendulum-v0": {"transitions": 2_000, "steps": 3_000},
+    "pimbrl/CartPole-v0": {"transitions": 1_000, "steps": 3_000},
+}
