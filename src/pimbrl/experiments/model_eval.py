@@ -26,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from ..config import non_negative, param, positive, validate
+from ..config import MAX_BATCH, MAX_LR, MAX_SEED, MAX_STEPS, MAX_TRANSITIONS, at_most, non_negative, param, positive, validate
 from ..envs import PhysicsEnv, Task
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.residual import Scheme
@@ -39,20 +39,28 @@ __all__ = ["OUT_OF_SAMPLE", "ModelEvalConfig", "collect_transitions", "run_model
 class ModelEvalConfig:
     """Settings of `pimbrl model-eval` (defaults per environment in :data:`DEFAULTS`)."""
 
-    transitions: int = param(2_000, "real transitions collected with a random policy (training + in-sample test)", positive())
-    test_transitions: int = param(500, "held-out in-sample and out-of-sample test transitions (each)", positive())
-    steps: int = param(2_000, "gradient steps of each model", positive())
-    batch_size: int = param(256, "batch size of the data and of the physics loss", positive())
-    lr: float = param(1e-3, "Adam learning rate", positive())
-    n_intermediate: int = param(5, "PDE models: intermediate states per control step", positive())
+    transitions: int = param(
+        2_000,
+        "real transitions collected with a random policy (training + in-sample test)",
+        [positive(), at_most(MAX_TRANSITIONS)],
+    )
+    test_transitions: int = param(
+        500, "held-out in-sample and out-of-sample test transitions (each)", [positive(), at_most(MAX_TRANSITIONS)]
+    )
+    steps: int = param(2_000, "gradient steps of each model", [positive(), at_most(MAX_STEPS)])
+    batch_size: int = param(256, "batch size of the data and of the physics loss", [positive(), at_most(MAX_BATCH)])
+    lr: float = param(1e-3, "Adam learning rate", [positive(), at_most(MAX_LR)])
+    n_intermediate: int = param(5, "PDE models: intermediate states per control step", [positive(), at_most(1_000)])
     scheme: str = param(
         "etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'")
     )
-    physics_weight: float = param(1.0, "w_E, weight of the physics loss", non_negative())
-    imagined_length: int = param(3, "length of the imagined rollouts that supply unlabelled states", non_negative())
-    refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", positive())
-    seed: int = param(0, "seed of data collection, initialisation and batches", non_negative())
-    threads: int = param(1, "torch threads", positive())
+    physics_weight: float = param(1.0, "w_E, weight of the physics loss", [non_negative(), at_most(1e6)])
+    imagined_length: int = param(
+        3, "length of the imagined rollouts that supply unlabelled states", [non_negative(), at_most(10_000)]
+    )
+    refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", [positive(), at_most(MAX_STEPS)])
+    seed: int = param(0, "seed of data collection, initialisation and batches", [non_negative(), at_most(MAX_SEED)])
+    threads: int = param(1, "torch threads", [positive(), at_most(256)])
 
 
 DEFAULTS: dict[str, dict[str, Any]] = {
