@@ -17,13 +17,15 @@ truncation and only stops at a true termination.
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = ["PHYSICS_FIELDS", "Batch", "ReplayBuffer", "Transitions", "physics_extras"]
+__all__ = ["PHYSICS_FIELDS", "Batch", "ReplayBuffer", "Transitions", "available_memory", "physics_extras"]
 
 
 @dataclass(frozen=True)
@@ -118,6 +120,25 @@ def physics_extras(state_dim: int, action_dim: int) -> dict[str, tuple[int, ...]
     }
 
 
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux's ``MemAvailable``), ``None`` where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _bytes(n: int) -> str:
+    return f"{n / 1e9:.1f} GB" if n >= 1e8 else f"{n / 1e6:.1f} MB"
+
+
 class ReplayBuffer:
     """Ring buffer of ``capacity`` transitions.
 
@@ -134,6 +155,7 @@ class ReplayBuffer:
         self.capacity = int(capacity)
         self.obs_dim = int(obs_dim)
         self.act_dim = int(act_dim)
+        self._check_memory(extras or {})
         self.obs = torch.zeros((self.capacity, self.obs_dim))
         self.next_obs = torch.zeros((self.capacity, self.obs_dim))
         self.action = torch.zeros((self.capacity, self.act_dim))
@@ -147,6 +169,18 @@ class ReplayBuffer:
 
     def __len__(self) -> int:
         return self.size
+
+    def _check_memory(self, extras: dict[str, tuple[int, ...]]) -> None:
+        """Refuse a preallocation larger than the memory available, with the estimate and the fix."""
+        per_row = 2 * self.obs_dim + self.act_dim + 3 + sum(math.prod(shape) for shape in extras.values())
+        need = 4 * per_row * self.capacity  # float32
+        free = available_memory()
+        if free is not None and need > free:
+            raise ValueError(
+                f"a replay buffer of {self.capacity:,} transitions needs about {_bytes(need)} "
+                f"({4 * per_row} bytes each), but only {_bytes(free)} of memory is available: "
+                "lower --buffer-size (or --dyna.imagined-buffer-size for the imagined buffer)"
+            )
 
     def add(
         self,

@@ -4,13 +4,17 @@ Dataclass fields with documented checks, validation, (de)serialisation and comma
 from the fields.
 
 A field declared with :func:`param` carries its help text and a check; :func:`validate` runs every check
-and raises :class:`ConfigError` naming the field, its allowed range and the bad value.
+and raises :class:`ConfigError` naming the field, its allowed range and the bad value. Every float value
+must also be finite (NaN and infinities are rejected for every field, checked or not, unless the field
+is declared with ``param(..., finite=False)``), and the sizes and counts carry upper bounds
+(:func:`at_most`), stated in their help texts.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import types
 import typing
 from collections.abc import Callable
@@ -20,8 +24,14 @@ if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
 __all__ = [
+    "MAX_BATCH",
+    "MAX_LR",
+    "MAX_SEED",
+    "MAX_STEPS",
+    "MAX_TRANSITIONS",
     "ConfigError",
     "add_arguments",
+    "at_most",
     "field_type",
     "from_dict",
     "overrides_from_args",
@@ -34,6 +44,21 @@ __all__ = [
 
 #: a dataclass instance (typeshed's protocol: anything with ``__dataclass_fields__``)
 D = TypeVar("D", bound="DataclassInstance")
+
+
+#: Upper bounds of the sizes and counts of the configurations (docs/training.md, section 'Bounds'): far
+#: beyond any run this CPU library can make, low enough that a typo gives a message instead of an
+#: ``OverflowError``, a hang or a failed allocation.
+#: real environment steps, and every step count compared with them (a billion)
+MAX_STEPS = 10**9
+#: transitions a buffer holds or a collection gathers (a hundred million; memory is checked too)
+MAX_TRANSITIONS = 10**8
+#: minibatch sizes
+MAX_BATCH = 100_000
+#: learning rates (Adam moves each weight by about the learning rate per step)
+MAX_LR = 1.0
+#: seeds (numpy's classic seed range)
+MAX_SEED = 2**32 - 1
 
 
 class _Unset:
@@ -50,51 +75,93 @@ class ConfigError(ValueError):
     """A configuration value is invalid; the message names the field, the rule and the value."""
 
 
-def param(default: Any, help: str, check: tuple[Callable[[Any], bool], str] | None = None, **kwargs: Any) -> Any:
-    """A dataclass field with a help string and an optional ``(predicate, description)`` check."""
-    metadata = {"help": help, "check": check}
+#: a check: a predicate and the rule it enforces, in words (``"must be > 0"``)
+Check = tuple[Callable[[Any], bool], str]
+
+
+def param(default: Any, help: str, check: Check | list[Check] | None = None, finite: bool = True, **kwargs: Any) -> Any:
+    """A dataclass field with a help string and an optional check.
+
+    ``check`` is a ``(predicate, rule)`` pair or a list of them, tried in order (:func:`validate` names
+    the first rule that fails); the rules are appended to the help text, so that ``--help`` states every
+    bound. ``finite=False`` lets a float field hold NaN or an infinity (no field does today).
+    """
+    checks = [] if check is None else list(check) if isinstance(check, list) else [check]
+    if checks:
+        help = f"{help} ({'; '.join(rule for _, rule in checks)})"
+    metadata = {"help": help, "check": checks or None, "finite": finite}
     if isinstance(default, (list, dict, set)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata, **kwargs)
     return dataclasses.field(default=default, metadata=metadata, **kwargs)
 
 
-def positive(kind: str = "") -> tuple[Callable[[Any], bool], str]:
+def positive(kind: str = "") -> Check:
+    """The check ``value > 0``."""
     return (lambda v: v > 0, f"must be > 0{kind}")
 
 
-def non_negative() -> tuple[Callable[[Any], bool], str]:
+def non_negative() -> Check:
+    """The check ``value >= 0``."""
     return (lambda v: v >= 0, "must be >= 0")
 
 
-def in_range(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False) -> tuple[Callable[[Any], bool], str]:
+def _number(x: float) -> str:
+    """``x`` for a message: whole numbers with thousands separators (``100,000,000``), others as written."""
+    if isinstance(x, int) or (isinstance(x, float) and x.is_integer() and abs(x) < 1e15):
+        return f"{int(x):,}"
+    return repr(x)
+
+
+def at_most(hi: float) -> Check:
+    """The check ``value <= hi``: the documented upper bound of a size or a count."""
+    return (lambda v: v <= hi, f"must be <= {_number(hi)}")
+
+
+def in_range(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False) -> Check:
+    """The check ``lo <= value <= hi`` (``<`` at an open end)."""
+
     def ok(v: Any) -> bool:
         return (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
 
     return ok, f"must be in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
 
 
-def one_of(*choices: Any) -> tuple[Callable[[Any], bool], str]:
+def one_of(*choices: Any) -> Check:
+    """The check ``value in choices``."""
     return (lambda v: v in choices, f"must be one of {', '.join(map(repr, choices))}")
 
 
+def _non_finite(value: Any) -> bool:
+    """Whether ``value`` is a float NaN or infinity, or a list/tuple holding one."""
+    if isinstance(value, (list, tuple)):
+        return any(_non_finite(v) for v in value)
+    return isinstance(value, float) and not math.isfinite(value)
+
+
 def validate(cfg: Any, prefix: str = "") -> None:
-    """Run every field's check (recursively into nested dataclasses)."""
+    """Run every field's checks (recursively into nested dataclasses); the first failure is a :class:`ConfigError`.
+
+    Before its own checks, every field (checked or not) must hold finite floats only, unless it was
+    declared with ``param(..., finite=False)``: ``utd must be finite, got inf``.
+    """
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         name = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(value):
             validate(value, prefix=f"{f.metadata.get('prefix', name)}.")
             continue
-        check = f.metadata.get("check")
-        if check is None or value is None:
+        if f.metadata.get("finite", True) and _non_finite(value):
+            raise ConfigError(f"{name} must be finite, got {value!r}")
+        checks = f.metadata.get("check")
+        if checks is None or value is None:
             continue
-        predicate, rule = check
-        try:
-            good = bool(predicate(value))
-        except TypeError:
-            good = False
-        if not good:
-            raise ConfigError(f"{name} {rule}, got {value!r}")
+        for predicate, rule in [checks] if isinstance(checks, tuple) else checks:
+            try:
+                good = bool(predicate(value))
+            except TypeError:
+                good = False
+            if not good:
+                raise ConfigError(f"{name} {rule}, got {value!r}")
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:
@@ -266,7 +333,10 @@ def typed_value(tp: Any, value: Any, name: str) -> Any:
         raise ConfigError(f"{name} must be an integer, got {value!r}{hint}")
     if base is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                return float(value)
+            except OverflowError:  # an int beyond the float range
+                raise ConfigError(f"{name} must be finite, got an integer of {len(str(abs(value)))} digits") from None
         raise ConfigError(f"{name} must be a number, got {value!r}")
     if base is str:
         if isinstance(value, str):

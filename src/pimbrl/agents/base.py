@@ -12,10 +12,10 @@ import torch
 from torch import nn
 
 from ..buffers import Batch
-from .config import AgentConfig
+from .config import MAX_LAYERS, MAX_WIDTH, AgentConfig
 from .networks import CriticEnsemble
 
-__all__ = ["Agent", "AgentConfig", "frozen", "make_optimizer", "polyak_update", "target_copy"]
+__all__ = ["MAX_LAYERS", "MAX_WIDTH", "Agent", "AgentConfig", "frozen", "make_optimizer", "polyak_update", "target_copy"]
 
 
 def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor], polyak: float) -> None:

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..config import in_range, param, positive
+from ..config import MAX_BATCH, MAX_LR, at_most, in_range, param, positive
 
-__all__ = ["AGENT_NAMES", "AgentConfig"]
+__all__ = ["AGENT_NAMES", "MAX_LAYERS", "MAX_WIDTH", "AgentConfig"]
+
+#: bounds of :attr:`AgentConfig.hidden`: hidden layers, and units per layer
+MAX_LAYERS = 16
+MAX_WIDTH = 4_096
 
 #: the agents of :func:`pimbrl.agents.make_agent` (the keys of :data:`pimbrl.agents.AGENTS`)
 AGENT_NAMES = ("td3", "ddpg", "sac")
@@ -19,23 +23,26 @@ class AgentConfig:
     hidden: tuple[int, ...] = param(
         (256, 256),
         "hidden layer sizes of actor and critics",
-        (lambda v: len(v) > 0 and all(h > 0 for h in v), "must be a non-empty list of positive sizes"),
+        (
+            lambda v: 0 < len(v) <= MAX_LAYERS and all(0 < h <= MAX_WIDTH for h in v),
+            f"must be 1 to {MAX_LAYERS} layer sizes, each in [1, {MAX_WIDTH:,}]",
+        ),
     )
-    actor_lr: float = param(1e-3, "actor learning rate (Adam)", positive())
-    critic_lr: float = param(1e-3, "critic learning rate (Adam)", positive())
+    actor_lr: float = param(1e-3, "actor learning rate (Adam)", [positive(), at_most(MAX_LR)])
+    critic_lr: float = param(1e-3, "critic learning rate (Adam)", [positive(), at_most(MAX_LR)])
     gamma: float = param(0.99, "discount factor", in_range(0.0, 1.0, lo_open=True))
     polyak: float = param(
         0.995, "target networks: theta_targ <- polyak theta_targ + (1 - polyak) theta", in_range(0.0, 1.0, hi_open=True)
     )
-    batch_size: int = param(128, "minibatch size of each update", positive())
-    policy_delay: int = param(2, "TD3: actor and target updates every this many critic updates", positive())
+    batch_size: int = param(128, "minibatch size of each update", [positive(), at_most(MAX_BATCH)])
+    policy_delay: int = param(2, "TD3: actor and target updates every this many critic updates", [positive(), at_most(1_000)])
     exploration_noise: float = param(
         0.1, "TD3/DDPG: Gaussian action noise, as a fraction of each action's half-range", in_range(0.0, 1.0)
     )
     target_smoothing: bool = param(True, "TD3: target-policy smoothing (Fujimoto et al.); the paper's Algorithm A1 has none")
     target_noise: float = param(0.2, "TD3: std of the target-policy smoothing noise (normalised actions)", in_range(0.0, 1.0))
     noise_clip: float = param(0.5, "TD3: clip of the target-policy smoothing noise", in_range(0.0, 1.0))
-    init_alpha: float = param(0.2, "SAC: initial entropy temperature", positive())
+    init_alpha: float = param(0.2, "SAC: initial entropy temperature", [positive(), at_most(1_000)])
     autotune_alpha: bool = param(True, "SAC: tune the temperature to reach the target entropy")
-    alpha_lr: float = param(3e-4, "SAC: temperature learning rate", positive())
-    target_entropy: float | None = param(None, "SAC: target entropy (default: -action_dim)")
+    alpha_lr: float = param(3e-4, "SAC: temperature learning rate", [positive(), at_most(MAX_LR)])
+    target_entropy: float | None = param(None, "SAC: target entropy (default: -action_dim)", in_range(-1_000.0, 1_000.0))

@@ -17,7 +17,16 @@ Common behaviour (docs/environments.md, section 'Common behaviour'):
   number of control steps since the reset (0 after ``reset``). ``reset`` returns ``state`` and
   ``step_index`` too. (The vector env exposes its states as the ``states`` property instead.);
 * the time limit truncates (``truncated=True``, never ``terminated``): for the single env through
-  Gymnasium's ``TimeLimit`` wrapper that ``gymnasium.make`` adds, for the vector env internally.
+  Gymnasium's ``TimeLimit`` wrapper that ``gymnasium.make`` adds, for the vector env internally;
+* ``options["initial_state"]`` must be finite, within the physics' divergence bound and have its
+  observation in the observation space, else ``reset`` raises a one-line ``ValueError``;
+* stepping the single env again after it returned ``terminated=True`` warns once per episode through
+  ``gymnasium.logger.warn``, as Gymnasium's own environments do (the step still runs from the current
+  state; call ``reset()``);
+* ``render_mode="rgb_array"`` (single env): ``render()`` returns an ``(H, W, 3)`` ``uint8`` frame of the
+  current state (:meth:`Task.render`); the default ``render_mode`` is ``None``;
+* constructor arguments are type-checked, not coerced: ``num_envs=1.5`` or ``periodic_actuators="false"``
+  is an error.
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .task import Task
+from .task import Task, check_positive_int
 
 __all__ = ["PHYSICS_INFO_KEYS", "PhysicsEnv", "PhysicsVectorEnv"]
 
@@ -41,20 +50,24 @@ class PhysicsEnv(gym.Env):
     """Single-environment shell; subclasses set :attr:`task_class` and document the task."""
 
     task_class: ClassVar[type[Task]]
-    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 - Gymnasium declares it as an attribute
+    #: subclasses set ``render_fps`` to their task's (one frame per control step, in real time)
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 30}  # noqa: RUF012 - Gymnasium's attribute
 
     def __init__(self, render_mode: str | None = None, **task_kwargs: Any) -> None:
-        if render_mode is not None:
+        if render_mode not in (None, "rgb_array"):
             raise ValueError(
-                f"render_mode={render_mode!r} is not supported; use `pimbrl simulate` or pimbrl.plotting for figures"
+                f"render_mode={render_mode!r} is not supported (only 'rgb_array', or None); "
+                "use `pimbrl simulate` or pimbrl.plotting for figures"
             )
         self.task = self.task_class(**task_kwargs)
         self.physics = self.task.physics
         self.observation_space = self.task.observation_space
         self.action_space = self.task.action_space
-        self.render_mode = None
+        self.render_mode = render_mode
         self._u: np.ndarray | None = None  # (1, state_dim) float64
         self._k = np.zeros(1, dtype=np.int64)
+        self._terminated = False  # the last step ended the episode (terminated=True)
+        self._warned_after_termination = False
 
     @property
     def state(self) -> np.ndarray:
@@ -77,12 +90,21 @@ class PhysicsEnv(gym.Env):
         else:
             self._u = self.task.sample_initial_states(self.np_random, 1)
         self._k = np.zeros(1, dtype=np.int64)
+        self._terminated = False
+        self._warned_after_termination = False
         return self.task.observe(self._u, self._k)[0], {"diverged": False, "state": self._u[0].copy(), "step_index": 0}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply one action for one control step; ``info`` carries the physical side of the step."""
         if self._u is None:
             raise RuntimeError("call reset() before step()")
+        if self._terminated and not self._warned_after_termination:
+            gym.logger.warn(
+                "You are calling 'step()' even though this environment has already returned terminated = True. "
+                "You should always call 'reset()' once you receive 'terminated = True' -- any further steps are "
+                "undefined behavior."
+            )
+            self._warned_after_termination = True
         a = self.task.physical_action(action, 1)
         out = self.task.advance(self._u, a, self._k)
         self._u = out.state
@@ -94,7 +116,24 @@ class PhysicsEnv(gym.Env):
             "physical_action": a[0].copy(),
             "step_index": int(self._k[0]),
         }
+        self._terminated = self._terminated or bool(out.terminated[0])
         return obs, float(out.reward[0]), bool(out.terminated[0]), False, info
+
+    def render(self) -> np.ndarray | None:
+        """The current state as an ``(H, W, 3)`` ``uint8`` RGB frame (``render_mode="rgb_array"``).
+
+        With ``render_mode=None`` (the default) it warns and returns ``None``, as Gymnasium's environments do.
+        """
+        if self.render_mode is None:
+            gym.logger.warn(
+                "You are calling render method without specifying any render mode. "
+                f'You can specify the render_mode at initialization, e.g. gym.make("{self.spec.id if self.spec else ""}", '
+                'render_mode="rgb_array")'
+            )
+            return None
+        if self._u is None:
+            raise RuntimeError("call reset() before render()")
+        return self.task.render(self._u[0], int(self._k[0]))
 
 
 class PhysicsVectorEnv(VectorEnv):
@@ -120,16 +159,19 @@ class PhysicsVectorEnv(VectorEnv):
         render_mode: str | None = None,
         **task_kwargs: Any,
     ) -> None:
-        if int(num_envs) < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.num_envs = check_positive_int(num_envs, "num_envs")
         if render_mode is not None:
-            raise ValueError(f"render_mode={render_mode!r} is not supported by pimbrl's vector envs")
+            raise ValueError(
+                f"render_mode={render_mode!r} is not supported by pimbrl's vector envs; render a single env "
+                "(gymnasium.make(..., render_mode='rgb_array'))"
+            )
         self.task = self.task_class(**task_kwargs)
         self.physics = self.task.physics
-        self.num_envs = int(num_envs)
-        self.max_episode_steps = int(max_episode_steps or self.task.max_episode_steps)
-        if self.max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        self.max_episode_steps = (
+            self.task.max_episode_steps
+            if max_episode_steps is None
+            else check_positive_int(max_episode_steps, "max_episode_steps")
+        )
         self.autoreset_mode = AutoresetMode(autoreset_mode)
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         self.render_mode = None

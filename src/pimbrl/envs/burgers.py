@@ -9,7 +9,8 @@ from gymnasium import spaces
 
 from ..physics import Burgers
 from .base import PhysicsEnv, PhysicsVectorEnv
-from .task import Task
+from .render import BLUE, RED, field_frame
+from .task import Task, check_finite_number
 
 __all__ = ["BurgersEnv", "BurgersTask", "BurgersVectorEnv"]
 
@@ -18,17 +19,18 @@ class BurgersTask(Task):
     """Burgers task: observation ``u - ref_k``, 2 actuators in ``[-0.025, 0.075]``, 60 control steps.
 
     Args:
-        divergence_penalty: reward of a step that blows up (default -100; any whole episode returns
+        divergence_penalty: reward of a step that blows up, a finite number (default -100; any whole episode returns
             more than about -60).
     """
 
     max_episode_steps = 60
+    render_fps = 2  # a control step is 0.5 time units
     physics: Burgers
     action_space: spaces.Box
 
     def __init__(self, divergence_penalty: float = -100.0) -> None:
         self.physics = Burgers(episode_steps=self.max_episode_steps)
-        self.divergence_penalty = float(divergence_penalty)
+        self.divergence_penalty = check_finite_number(divergence_penalty, "divergence_penalty")
         bound = np.float32(self.physics.divergence_bound + 1.0)
         self.observation_space = spaces.Box(-bound, bound, shape=(self.physics.n,), dtype=np.float32)
         self.action_space = spaces.Box(
@@ -52,6 +54,11 @@ class BurgersTask(Task):
     def physical_action(self, actions: Any, batch: int) -> np.ndarray:
         """Check the actions' shape and finiteness and clip them to the actuator bounds."""
         return self._box_action(actions, batch, self.action_space, self.physics.action_low, self.physics.action_high)
+
+    def render(self, u: np.ndarray, k: int) -> np.ndarray:
+        """The field ``u`` (blue) and the reference ``ref_k`` (red) over the grid; axis ``[-1, 1]``."""
+        ref = np.full(len(u), self.physics.reference(k))
+        return field_frame([(ref, RED), (u, BLUE)], self.render_scale)
 
 
 _DOC = """Viscous Burgers reference tracking with two actuators (Liu & Wang 2021, section 3.2).
@@ -89,8 +96,12 @@ _DOC = """Viscous Burgers reference tracking with two actuators (Liu & Wang 2021
     Truncation after 60 control steps (one period of the reference). Termination only on blow-up
     (non-finite or ``|u| > 10``), with reward ``divergence_penalty`` (-100) and ``info["diverged"]``.
 
+    ## Rendering
+    ``render_mode="rgb_array"``: the field (blue) and the reference (red) over the grid, 2 frames per
+    second (one per control step).
+
     ## Arguments
-    ``divergence_penalty``.
+    ``divergence_penalty`` (a finite number).
 
     ## Version History
     * v0: initial version, numerics of the authors' code (docs/environments.md, section
@@ -101,6 +112,7 @@ _DOC = """Viscous Burgers reference tracking with two actuators (Liu & Wang 2021
 class BurgersEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = BurgersTask
+    metadata = {"render_modes": ["rgb_array"], "render_fps": BurgersTask.render_fps}  # noqa: RUF012
 
 
 class BurgersVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC

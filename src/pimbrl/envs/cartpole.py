@@ -9,6 +9,7 @@ from gymnasium import spaces
 
 from ..physics import CartPole
 from .base import PhysicsEnv, PhysicsVectorEnv
+from .render import BLACK, BROWN, GREY, Canvas
 from .task import Task
 
 __all__ = ["CartPoleEnv", "CartPoleTask", "CartPoleVectorEnv"]
@@ -18,6 +19,7 @@ class CartPoleTask(Task):
     """Cart-Pole task: Discrete(2) actions (0: push left, 1: push right), 200 control steps."""
 
     max_episode_steps = 200
+    render_fps = 50  # a control step is 0.02 time units
     physics: CartPole
 
     def __init__(self) -> None:
@@ -48,6 +50,22 @@ class CartPoleTask(Task):
         if not np.all((arr == 0) | (arr == 1)):
             raise ValueError(f"Cart-Pole actions must be 0 (push left) or 1 (push right), got {arr.tolist()}")
         return np.where(arr == 1, self.physics.force_mag, -self.physics.force_mag)[:, None].astype(np.float64)
+
+    def render(self, u: np.ndarray, k: int) -> np.ndarray:
+        """A 300 x 600 sketch, as Gymnasium's: the track spans ``|x| <= 2.4``, cart (black) and pole (brown)."""
+        height, width = 300, 600
+        canvas = Canvas(height, width)
+        p = self.physics
+        scale = width / (2 * p.x_threshold)
+        track_y = 0.7 * height
+        canvas.segment((0, track_y), (width, track_y), GREY, 1.0)
+        x, theta = float(u[0]), float(u[2])
+        cart_x = width / 2 + x * scale
+        canvas.rectangle(cart_x - 25, track_y - 15, cart_x + 25, track_y + 15, BLACK)
+        pole = 2 * p.length * scale
+        pivot = (cart_x, track_y - 10)
+        canvas.segment(pivot, (pivot[0] + pole * np.sin(theta), pivot[1] - pole * np.cos(theta)), BROWN, 10.0)
+        return canvas.image
 
 
 _DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPole-v0 settings).
@@ -82,6 +100,9 @@ _DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPo
     ## Episode End
     Termination when ``|x| > 2.4`` or ``|theta| > 12 degrees``; truncation after 200 steps.
 
+    ## Rendering
+    ``render_mode="rgb_array"``: a 300 x 600 sketch of cart and pole, 50 frames per second.
+
     ## Arguments
     None.
 
@@ -93,6 +114,7 @@ _DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPo
 class CartPoleEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = CartPoleTask
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CartPoleTask.render_fps}  # noqa: RUF012
 
 
 class CartPoleVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC

@@ -10,7 +10,7 @@ from gymnasium import spaces
 from ..physics import KuramotoSivashinsky
 from .base import PhysicsEnv, PhysicsVectorEnv
 from .ks_states import KSPoolConfig, Split, ks_initial_state_pool
-from .task import Task
+from .task import Task, check_bool, check_finite_number
 
 __all__ = ["KSTask", "KuramotoSivashinskyEnv", "KuramotoSivashinskyVectorEnv"]
 
@@ -20,16 +20,18 @@ class KSTask(Task):
 
     Args:
         reward: ``"code"`` (the authors' reward scale, default) or ``"physical"``.
-        periodic_actuators: wrap the actuator Gaussians periodically (default False, as the authors).
+        periodic_actuators: wrap the actuator Gaussians periodically (a bool; default False, as the authors).
         initial_states: ``"train"`` (default) or ``"test"`` pool, or an array ``(n, 64)`` of states.
         pool_config: generator settings of the pools (a :class:`KSPoolConfig` or a dict of its fields; see
             :mod:`pimbrl.envs.ks_states`).
-        divergence_penalty: reward of a step that blows up (default -100; a settled uncontrolled episode
+        divergence_penalty: reward of a step that blows up, a finite number (default -100; a settled uncontrolled episode
             returns about -920, and with gamma = 0.977 the discounted cost of the rest of any episode
             is below 100).
     """
 
     max_episode_steps = 400
+    render_fps = 4  # a control step is 0.25 time units
+    render_scale = 4.0  # chaotic states stay within about |u| < 3
     physics: KuramotoSivashinsky
     action_space: spaces.Box
 
@@ -41,8 +43,10 @@ class KSTask(Task):
         pool_config: KSPoolConfig | dict | None = None,
         divergence_penalty: float = -100.0,
     ) -> None:
-        self.physics = KuramotoSivashinsky(reward=reward, periodic_actuators=periodic_actuators)
-        self.divergence_penalty = float(divergence_penalty)
+        self.physics = KuramotoSivashinsky(reward=reward, periodic_actuators=check_bool(periodic_actuators, "periodic_actuators"))
+        self.divergence_penalty = check_finite_number(divergence_penalty, "divergence_penalty")
+        if pool_config is not None and not isinstance(pool_config, (KSPoolConfig, dict)):
+            raise TypeError(f"pool_config must be a KSPoolConfig or a dict of its fields, got {pool_config!r}")
         self.pool_config = KSPoolConfig(**pool_config) if isinstance(pool_config, dict) else pool_config
         if isinstance(initial_states, str):
             if initial_states not in ("train", "test"):
@@ -142,8 +146,12 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
     (non-finite or ``|u| > 100``): then the reward is ``divergence_penalty`` (-100),
     ``info["diverged"]`` is True and the last finite observation is returned.
 
+    ## Rendering
+    ``render_mode="rgb_array"``: the field over the grid (vertical axis ``[-4, 4]``, widened to fit),
+    4 frames per second (one per control step).
+
     ## Arguments
-    ``reward``, ``periodic_actuators``, ``initial_states``, ``pool_config``, ``divergence_penalty``
+    ``reward``, ``periodic_actuators`` (a bool), ``initial_states``, ``pool_config``, ``divergence_penalty``
     (see :class:`pimbrl.envs.ks.KSTask`).
 
     ## Version History
@@ -155,6 +163,7 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
 class KuramotoSivashinskyEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = KSTask
+    metadata = {"render_modes": ["rgb_array"], "render_fps": KSTask.render_fps}  # noqa: RUF012
 
 
 class KuramotoSivashinskyVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC

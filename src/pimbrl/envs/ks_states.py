@@ -26,10 +26,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import sys
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Literal
 
 import numpy as np
@@ -60,6 +61,16 @@ class KSPoolConfig:
     batch: int = 64
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "settle_rate":
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                if not ok:
+                    raise TypeError(f"KSPoolConfig.settle_rate must be a finite number, got {value!r}")
+            elif isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise TypeError(f"KSPoolConfig.{f.name} must be an integer, got {value!r}")
+            elif value < 0:
+                raise ValueError(f"KSPoolConfig.{f.name} must be >= 0, got {value!r}")
         for name in ("n_train", "n_test", "spacing", "per_run", "max_steps", "episode_steps", "batch"):
             if getattr(self, name) < 1:
                 raise ValueError(f"KSPoolConfig.{name} must be >= 1, got {getattr(self, name)}")

@@ -9,6 +9,7 @@ from gymnasium import spaces
 
 from ..physics import Pendulum, wrap_angle
 from .base import PhysicsEnv, PhysicsVectorEnv
+from .render import BLACK, RED, Canvas
 from .task import Task
 
 __all__ = ["PendulumEnv", "PendulumTask", "PendulumVectorEnv"]
@@ -27,6 +28,7 @@ class PendulumTask(Task):
     """
 
     max_episode_steps = 200
+    render_fps = 20  # a control step is 0.05 time units
     physics: Pendulum
     action_space: spaces.Box
 
@@ -57,6 +59,19 @@ class PendulumTask(Task):
     def physical_action(self, actions: Any, batch: int) -> np.ndarray:
         """Check the torques' shape and finiteness and clip them to ``[-2, 2]``."""
         return self._box_action(actions, batch, self.action_space, self.physics.action_low, self.physics.action_high)
+
+    def render(self, u: np.ndarray, k: int) -> np.ndarray:
+        """A 400 x 400 sketch: the rod (red) from the pivot at the angle ``theta`` (0 points up)."""
+        size = 400
+        canvas = Canvas(size, size)
+        centre = size / 2
+        length = 0.4 * size
+        theta = float(u[0])
+        tip = (centre + length * np.sin(theta), centre - length * np.cos(theta))
+        canvas.segment((centre, centre), tip, RED, 0.08 * size)
+        canvas.disc(tip, 0.04 * size, RED)
+        canvas.disc((centre, centre), 0.015 * size, BLACK)
+        return canvas.image
 
 
 _DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
@@ -90,6 +105,9 @@ _DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
     ## Episode End
     Truncation after 200 steps; never terminates.
 
+    ## Rendering
+    ``render_mode="rgb_array"``: a 400 x 400 sketch of the rod, 20 frames per second.
+
     ## Arguments
     ``observation``: ``"cos_sin"`` (default) or ``"theta"``.
 
@@ -101,6 +119,7 @@ _DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
 class PendulumEnv(PhysicsEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC
     __doc__ = _DOC
     task_class = PendulumTask
+    metadata = {"render_modes": ["rgb_array"], "render_fps": PendulumTask.render_fps}  # noqa: RUF012
 
 
 class PendulumVectorEnv(PhysicsVectorEnv):  # noqa: D101 - docstring set below, __doc__ = _DOC

@@ -8,6 +8,7 @@ environments are thin shells around one task, so their behaviour cannot drift ap
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
@@ -16,8 +17,39 @@ import numpy as np
 from gymnasium import spaces
 
 from ..physics import Physics
+from .render import BLUE, field_frame
 
-__all__ = ["StepOutcome", "Task"]
+__all__ = ["StepOutcome", "Task", "check_bool", "check_finite_number", "check_positive_int"]
+
+
+def check_finite_number(value: Any, name: str) -> float:
+    """``value`` as a float if it is a finite real number (an int or a float, not a bool or a string).
+
+    Raises ``TypeError`` for a value of another type and ``ValueError`` for NaN or an infinity, each
+    naming ``name``.
+    """
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a number, got {value!r}")
+    out = float(value)
+    if not math.isfinite(out):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return out
+
+
+def check_positive_int(value: Any, name: str) -> int:
+    """``value`` if it is an integer >= 1 (a Python or NumPy int; not a float, a bool or a string)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {value!r}")
+    return int(value)
+
+
+def check_bool(value: Any, name: str) -> bool:
+    """``value`` if it is a bool (Python or NumPy); a string such as ``"false"`` or a number is an error."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 @dataclass
@@ -44,6 +76,10 @@ class Task(ABC):
     max_episode_steps: int
     #: reward given, instead of the physics' reward, on a step that blows up (then the episode ends)
     divergence_penalty: float = -100.0
+    #: frames per second of ``render_mode="rgb_array"`` videos: one frame per control step, in real time
+    render_fps: int = 30
+    #: half-height of the vertical axis of :meth:`render`'s default line plot (widened to fit the state)
+    render_scale: float = 1.0
 
     @abstractmethod
     def sample_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -68,7 +104,12 @@ class Task(ABC):
         return self.physics.state_dim
 
     def check_initial_state(self, state: Any) -> np.ndarray:
-        """A user-given physical state as a float64 ``(state_dim,)`` array, or a clear ``ValueError``."""
+        """A user-given physical state as a float64 ``(state_dim,)`` array, or a clear ``ValueError``.
+
+        The state must be finite, within the physics' divergence bound (the rule that ends an episode
+        as blown up after a step, :meth:`Physics.diverged`), and its observation must lie in
+        :attr:`observation_space` (finite in float32 too).
+        """
         arr = np.asarray(state, dtype=np.float64)
         if arr.shape != (self.state_dim,):
             raise ValueError(
@@ -76,6 +117,28 @@ class Task(ABC):
             )
         if not np.all(np.isfinite(arr)):
             raise ValueError("options['initial_state'] contains NaN or inf; pass a finite physical state")
+        if bool(self.physics.diverged(arr[None])[0]):
+            i = int(np.argmax(np.abs(arr)))
+            bound = self.physics.divergence_bound
+            raise ValueError(
+                f"options['initial_state'][{i}] = {arr[i]:.6g} is beyond the divergence bound |u| <= {bound:g} of "
+                f"{type(self.physics).__name__} (a step would end there as blown up); pass a state with |u| <= {bound:g}"
+            )
+        with np.errstate(over="ignore"):  # a float64 beyond float32's range becomes inf, reported below
+            obs = self.observe(arr[None], np.zeros(1, dtype=np.int64))[0]
+        if not (np.all(np.isfinite(obs)) and self.observation_space.contains(obs)):
+            space = self.observation_space
+            if isinstance(space, spaces.Box):
+                flat = obs.reshape(-1)
+                low, high = space.low.reshape(-1), space.high.reshape(-1)
+                j = int(np.argmax(~np.isfinite(flat) | (flat < low) | (flat > high)))
+                where = f"component {j} of its observation is {flat[j]:.6g}, outside [{low[j]:g}, {high[j]:g}]"
+            else:
+                where = "its observation is not in the observation space"
+            raise ValueError(
+                f"options['initial_state'] is outside the observation space: {where}; pass a state whose "
+                "observation lies in the observation space"
+            )
         return arr
 
     def advance(self, u: np.ndarray, physical_action: np.ndarray, k: np.ndarray) -> StepOutcome:
@@ -107,6 +170,14 @@ class Task(ABC):
                 "the policy produced a non-finite value - check the agent's network and inputs"
             )
         return np.clip(arr, low, high)
+
+    def render(self, u: np.ndarray, k: int) -> np.ndarray:
+        """An RGB ``uint8`` frame ``(H, W, 3)`` of the physical state ``u`` at control step ``k``.
+
+        By default a line plot of the state over its index (a PDE's field over the grid), the vertical
+        axis spanning ``[-render_scale, render_scale]``; the ODE tasks draw a sketch of the system.
+        """
+        return field_frame([(u, BLUE)], self.render_scale)
 
     def test_initial_states(self, n: int, seed: int) -> np.ndarray:
         """``(n, state_dim)`` float64 initial states of the test episodes, the same on every call.

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from ..config import non_negative, one_of, param, positive
+from ..config import MAX_BATCH, MAX_LR, MAX_SEED, MAX_STEPS, MAX_TRANSITIONS, at_most, non_negative, one_of, param, positive
 
 __all__ = ["DEFAULTS", "ModelEvalConfig"]
 
@@ -14,28 +14,46 @@ __all__ = ["DEFAULTS", "ModelEvalConfig"]
 class ModelEvalConfig:
     """Settings of `pimbrl model-eval` (defaults per environment in :data:`DEFAULTS`)."""
 
-    transitions: int = param(2_000, "real transitions collected with a random policy (training + in-sample test)", positive())
-    test_transitions: int = param(500, "held-out in-sample and out-of-sample test transitions (each)", positive())
-    steps: int = param(2_000, "gradient steps of each model", positive())
-    batch_size: int = param(256, "batch size of the data and of the physics loss", positive())
-    lr: float = param(1e-3, "Adam learning rate", positive())
-    n_intermediate: int = param(5, "PDE models: intermediate states per control step", positive())
+    transitions: int = param(
+        2_000,
+        "real transitions collected with a random policy (training + in-sample test)",
+        [positive(), at_most(MAX_TRANSITIONS)],
+    )
+    test_transitions: int = param(
+        500, "held-out in-sample and out-of-sample test transitions (each)", [positive(), at_most(MAX_TRANSITIONS)]
+    )
+    steps: int = param(2_000, "gradient steps of each model", [positive(), at_most(MAX_STEPS)])
+    batch_size: int = param(256, "batch size of the data and of the physics loss", [positive(), at_most(MAX_BATCH)])
+    lr: float = param(1e-3, "Adam learning rate", [positive(), at_most(MAX_LR)])
+    n_intermediate: int = param(5, "PDE models: intermediate states per control step", [positive(), at_most(1_000)])
     scheme: str = param(
         "etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'")
     )
-    physics_weight: float = param(1.0, "w_E, weight of the physics loss", non_negative())
-    imagined_length: int = param(3, "length of the imagined rollouts that supply unlabelled states", non_negative())
-    refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", positive())
-    seed: int = param(0, "seed of data collection, initialisation and batches", non_negative())
-    threads: int = param(1, "torch threads", positive())
+    physics_weight: float = param(1.0, "w_E, weight of the physics loss", [non_negative(), at_most(1e6)])
+    imagined_length: int = param(
+        3, "length of the imagined rollouts that supply unlabelled states", [non_negative(), at_most(10_000)]
+    )
+    refresh_every: int = param(250, "gradient steps between refreshes of the imagined states", [positive(), at_most(MAX_STEPS)])
+    seed: int = param(0, "seed of data collection, initialisation and batches", [non_negative(), at_most(MAX_SEED)])
+    threads: int = param(1, "torch threads", [positive(), at_most(256)])
     # the study (pimbrl.experiments.model_study): used when ``labels`` is given
-    labels: tuple[int, ...] = param((), "study: numbers of labelled transitions to compare, e.g. 0,100,300,1000")
-    seeds: int = param(1, "study: seeds (seed, seed + 1, ...)", positive())
-    seed_states: int = param(500, "study: observed states the physics loss may start from without labels", positive())
+    labels: tuple[int, ...] = param(
+        (),
+        "study: numbers of labelled transitions to compare, e.g. 0,100,300,1000",
+        (lambda v: all(0 <= n <= MAX_TRANSITIONS for n in v), f"must be numbers in [0, {MAX_TRANSITIONS:,}]"),
+    )
+    seeds: int = param(1, "study: seeds (seed, seed + 1, ...)", [positive(), at_most(1_000)])
+    seed_states: int = param(
+        500, "study: observed states the physics loss may start from without labels", [positive(), at_most(MAX_TRANSITIONS)]
+    )
     sources: str = param("train,imagined", "physics-loss sources: train, imagined, symmetry, scaled, noise, box")
     units: str = param("substep", "units of the physics loss: substep or step", one_of("substep", "step"))
     model: str = param("convlstm", "PDE model: convlstm or equivariant", one_of("convlstm", "equivariant"))
-    rollout_lengths: tuple[int, ...] = param((1,), "study: chained model steps at which the error is measured, e.g. 1,3,8")
+    rollout_lengths: tuple[int, ...] = param(
+        (1,),
+        "study: chained model steps at which the error is measured, e.g. 1,3,8",
+        (lambda v: len(v) > 0 and all(1 <= n <= 10_000 for n in v), "must be numbers in [1, 10,000]"),
+    )
 
 
 DEFAULTS: dict[str, dict[str, Any]] = {

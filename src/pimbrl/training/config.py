@@ -25,7 +25,13 @@ from typing import Any
 
 from ..agents.config import AGENT_NAMES, AgentConfig
 from ..config import (
+    MAX_BATCH,
+    MAX_LR,
+    MAX_SEED,
+    MAX_STEPS,
+    MAX_TRANSITIONS,
     ConfigError,
+    at_most,
     field_type,
     from_dict,
     in_range,
@@ -67,19 +73,23 @@ class DynaConfig:
     """
 
     threshold: float = param(1e-2, "lambda: held-out next-state MSE below which the model generates imagined data", positive())
-    rollout_length: int = param(3, "l_M: chained model steps per imagined rollout", positive())
-    start_model_after: int = param(6_000, "n_sM: real transitions before the model is first trained", non_negative())
-    start_physics_after: int = param(
-        12_000, "n_sR: real + imagined transitions before the physics loss joins (pimbrl)", non_negative()
+    rollout_length: int = param(3, "l_M: chained model steps per imagined rollout", [positive(), at_most(10_000)])
+    start_model_after: int = param(
+        6_000, "n_sM: real transitions before the model is first trained", [non_negative(), at_most(MAX_STEPS)]
     )
-    model_steps: int = param(50, "model gradient steps per update phase", non_negative())
-    model_batch_size: int = param(256, "batch size of the data loss and of the physics loss", positive())
-    model_lr: float = param(1e-3, "model learning rate (Adam)", positive())
-    n_intermediate: int = param(5, "PDE models: intermediate states per control step (N)", positive())
+    start_physics_after: int = param(
+        12_000, "n_sR: real + imagined transitions before the physics loss joins (pimbrl)", [non_negative(), at_most(MAX_STEPS)]
+    )
+    model_steps: int = param(50, "model gradient steps per update phase", [non_negative(), at_most(1_000_000)])
+    model_batch_size: int = param(256, "batch size of the data loss and of the physics loss", [positive(), at_most(MAX_BATCH)])
+    model_lr: float = param(1e-3, "model learning rate (Adam)", [positive(), at_most(MAX_LR)])
+    n_intermediate: int = param(5, "PDE models: intermediate states per control step (N)", [positive(), at_most(1_000)])
     residual: str = param("etd", "physics residual scheme for PDEs: etd or solver", one_of("etd", "solver"))
-    physics_weight: float = param(1.0, "w_E: weight of the physics loss", non_negative())
-    rollouts: int = param(200, "imagined rollouts started per update phase (n_bf)", non_negative())
-    imagined_buffer_size: int = param(100_000, "capacity of the imagined buffer; older imagined data is refreshed", positive())
+    physics_weight: float = param(1.0, "w_E: weight of the physics loss", [non_negative(), at_most(1e6)])
+    rollouts: int = param(200, "imagined rollouts started per update phase (n_bf)", [non_negative(), at_most(1_000_000)])
+    imagined_buffer_size: int = param(
+        100_000, "capacity of the imagined buffer; older imagined data is refreshed", [positive(), at_most(MAX_TRANSITIONS)]
+    )
     imagined_start_fraction: float = param(
         0.0, "fraction of rollout start states drawn from the imagined buffer", in_range(0.0, 1.0)
     )
@@ -87,9 +97,13 @@ class DynaConfig:
     holdout_fraction: float = param(
         0.1, "fraction of real transitions held out to measure the model's accuracy", in_range(0.0, 0.5, lo_open=True)
     )
-    validation_size: int = param(2_000, "most recent held-out transitions used for the accuracy check", positive())
+    validation_size: int = param(
+        2_000, "most recent held-out transitions used for the accuracy check", [positive(), at_most(MAX_TRANSITIONS)]
+    )
     finetune_return: float | None = param(None, "switch to model-free fine-tuning once the mean test return reaches this")
-    finetune_after: int | None = param(None, "switch to model-free fine-tuning after this many real steps")
+    finetune_after: int | None = param(
+        None, "switch to model-free fine-tuning after this many real steps", [non_negative(), at_most(MAX_STEPS)]
+    )
     accuracy: str = param(
         "absolute",
         "accuracy check: absolute (held-out MSE < threshold, the paper's lambda) or relative (held-out MSE < "
@@ -116,7 +130,7 @@ class DynaConfig:
         None,
         "pimbrl: real steps after which the model trains on the physics loss alone (before start_model_after; "
         "normalisation from the equation), so it can be checked and used before it has labels",
-        non_negative(),
+        [non_negative(), at_most(MAX_STEPS)],
     )
     reward_quadrature: str = param(
         "path",
@@ -133,19 +147,27 @@ class TrainConfig:
     env: str = param("pimbrl/Pendulum-v0", "environment id (pimbrl/... or any Gymnasium id)")
     method: str = param("mfrl", "mfrl (model-free), mbrl (data-only model), pimbrl (physics-informed model)", one_of(*METHODS))
     agent: str = param("td3", "off-policy agent", one_of(*AGENT_NAMES))
-    seed: int = param(0, "seeds networks, exploration, replay sampling and the environment", non_negative())
-    total_steps: int = param(15_000, "real environment steps", positive())
-    warmup_steps: int = param(1_000, "initial steps with uniformly random actions", non_negative())
-    update_after: int = param(1_000, "real steps collected before the first agent update", non_negative())
-    update_every: int = param(50, "real steps between update phases (the paper's update_every)", positive())
-    utd: float = param(1.0, "agent updates per real step (update-to-data ratio); the paper: 50 per 50 steps", positive())
-    buffer_size: int = param(1_000_000, "capacity of the real replay buffer", positive())
-    eval_every: int = param(1_000, "real steps between evaluations", positive())
-    eval_episodes: int = param(100, "test episodes per evaluation (the paper: 100; 200 for KS)", positive())
-    eval_seed: int = param(2021, "seed of the held-out test initial states (KS uses its test pool)", non_negative())
+    seed: int = param(0, "seeds networks, exploration, replay sampling and the environment", [non_negative(), at_most(MAX_SEED)])
+    total_steps: int = param(15_000, "real environment steps", [positive(), at_most(MAX_STEPS)])
+    warmup_steps: int = param(1_000, "initial steps with uniformly random actions", [non_negative(), at_most(MAX_STEPS)])
+    update_after: int = param(1_000, "real steps collected before the first agent update", [non_negative(), at_most(MAX_STEPS)])
+    update_every: int = param(50, "real steps between update phases (the paper's update_every)", [positive(), at_most(MAX_STEPS)])
+    utd: float = param(
+        1.0, "agent updates per real step (update-to-data ratio); the paper: 50 per 50 steps", [positive(), at_most(1_000)]
+    )
+    buffer_size: int = param(
+        1_000_000, "capacity of the real replay buffer (its memory is checked too)", [positive(), at_most(MAX_TRANSITIONS)]
+    )
+    eval_every: int = param(1_000, "real steps between evaluations", [positive(), at_most(MAX_STEPS)])
+    eval_episodes: int = param(100, "test episodes per evaluation (the paper: 100; 200 for KS)", [positive(), at_most(10_000)])
+    eval_seed: int = param(
+        2021, "seed of the held-out test initial states (KS uses its test pool)", [non_negative(), at_most(MAX_SEED)]
+    )
     threshold: float | None = param(None, "evaluation return that counts as solved (steps-to-threshold)")
-    checkpoint_every: int = param(5_000, "real steps between checkpoints (taken at the next episode end)", positive())
-    log_every: int = param(1_000, "real steps between rows of metrics.csv", positive())
+    checkpoint_every: int = param(
+        5_000, "real steps between checkpoints (taken at the next episode end)", [positive(), at_most(MAX_STEPS)]
+    )
+    log_every: int = param(1_000, "real steps between rows of metrics.csv", [positive(), at_most(MAX_STEPS)])
     threads: int = param(1, "torch threads for this run", in_range(1, 256))
     tensorboard: bool = param(False, "also write TensorBoard events (needs the tensorboard package)")
     env_kwargs: dict = dataclasses.field(
