@@ -159,3 +159,21 @@ def test_replay_buffer_keeps_the_newest_rows_of_an_oversized_batch() -> None:
     assert len(buf) == 5 and buf.total_added == 10
     assert sorted(buf.reward.tolist()) == [3.0, 4.0, 5.0, 6.0, 7.0]
     assert sorted(buf.extras["k"][:, 0].tolist()) == [3.0, 4.0, 5.0, 6.0, 7.0]
+
+
+def test_preactivation_penalty_pulls_the_actor_off_tanh_saturation() -> None:
+    """A TD3 actor driven into saturation: with the penalty its pre-tanh outputs shrink, without it they do not."""
+    obs = torch.randn(256, 3)
+    batch = Batch(obs, torch.zeros(256, 1), torch.zeros(256), obs, torch.zeros(256), torch.zeros(256))
+    sizes = {}
+    for penalty in (0.0, 10.0):
+        agent = make_agent(
+            "td3", 3, 1, AgentConfig(hidden=(16,), policy_delay=1, actor_lr=0.05, preactivation_penalty=penalty), seed=0
+        )
+        with torch.no_grad():
+            agent.actor.net[-2].bias.fill_(5.0)  # tanh(5) = 0.9999: saturated
+        before = float(agent.actor.preactivation(obs).abs().mean())
+        for _ in range(50):
+            agent.update(batch)
+        sizes[penalty] = float(agent.actor.preactivation(obs).abs().mean()) / before
+    assert sizes[10.0] < 0.5 < sizes[0.0], sizes

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..config import MAX_BATCH, MAX_LR, at_most, in_range, param, positive
+from ..config import MAX_BATCH, MAX_LR, at_most, in_range, non_negative, param, positive
 
 __all__ = ["AGENT_NAMES", "MAX_LAYERS", "MAX_WIDTH", "AgentConfig"]
 
@@ -38,6 +38,12 @@ class AgentConfig:
     policy_delay: int = param(2, "TD3: actor and target updates every this many critic updates", [positive(), at_most(1_000)])
     exploration_noise: float = param(
         0.1, "TD3/DDPG: Gaussian action noise, as a fraction of each action's half-range", in_range(0.0, 1.0)
+    )
+    preactivation_penalty: float = param(
+        0.0,
+        "TD3/DDPG: weight of mean(z^2), z the actor's pre-tanh output, in the actor loss: keeps the actor off "
+        "tanh saturation, where its gradient vanishes (0: none, the paper's)",
+        [non_negative(), at_most(1e3)],
     )
     target_smoothing: bool = param(True, "TD3: target-policy smoothing (Fujimoto et al.); the paper's Algorithm A1 has none")
     target_noise: float = param(0.2, "TD3: std of the target-policy smoothing noise (normalised actions)", in_range(0.0, 1.0))

@@ -42,6 +42,10 @@ class DeterministicActor(nn.Module):
         """Actions ``(B, act_dim)`` in ``[-1, 1]`` for observations ``(B, obs_dim)``."""
         return self.net(obs)
 
+    def preactivation(self, obs: torch.Tensor) -> torch.Tensor:
+        """The output before the tanh (``forward`` is its tanh, computed by the same layers)."""
+        return self.net[:-1](obs)
+
 
 class GaussianActor(nn.Module):
     """Tanh-squashed Gaussian policy (SAC): returns an action in ``[-1, 1]`` and its log-probability."""

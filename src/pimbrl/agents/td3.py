@@ -82,7 +82,12 @@ class TD3(Agent):
         metrics = {"agent/critic_loss": critic_loss, "agent/q_mean": q.mean()}
         if self.n_updates % self._delay == 0:
             with frozen(self.critic):
-                actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs)).mean()
+                if cfg.preactivation_penalty > 0:
+                    z = self.actor.preactivation(batch.obs)
+                    q_pi = self.critic.first(batch.obs, torch.tanh(z))
+                    actor_loss = -q_pi.mean() + cfg.preactivation_penalty * z.pow(2).mean()
+                else:
+                    actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs)).mean()
             self.actor_opt.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.actor_opt.step()

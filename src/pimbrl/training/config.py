@@ -250,7 +250,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 #: agent fields that only some agents read (checked against agents/td3.py and agents/sac.py)
 SAC_ONLY = ("init_alpha", "autotune_alpha", "alpha_lr", "target_entropy")
 TD3_ONLY = ("policy_delay", "target_smoothing", "target_noise", "noise_clip")  # DDPG: no delay, no smoothing
-NOISE_EXPLORATION = ("exploration_noise",)  # TD3, DDPG; SAC samples its stochastic policy
+NOISE_EXPLORATION = ("exploration_noise", "preactivation_penalty")  # TD3, DDPG; SAC samples its stochastic policy
 #: dyna fields that only the physics loss reads (pimbrl) and only the PDE models read. start_physics_after
 #: is read by pimbrl only too, but the shared smoke settings of the tests give it to mbrl runs: not checked
 PIMBRL_ONLY = ("physics_weight", "residual", "start_physics_after", "physics_sources", "residual_units", "physics_start")
