@@ -3,7 +3,7 @@
 Layering, top to bottom (a module may import its own group and the groups below it, never above)::
 
     cli -> experiments -> training -> agents | models -> simulate, pimbrl/__init__ -> envs -> plotting
-        -> physics -> buffers, spaces, config
+        -> physics -> buffers, spaces, config, fileio
 
 ``agents`` and ``models`` are independent: neither imports the other. ``simulate`` and ``plotting`` are
 utilities: ``simulate`` runs an environment, ``plotting`` draws arrays and may use nothing above
@@ -31,6 +31,7 @@ RANKS: dict[str, int] = {
     "buffers": 0,
     "spaces": 0,
     "config": 0,
+    "fileio": 0,
     "physics": 1,
     "plotting": 2,
     "envs": 3,

@@ -294,12 +294,21 @@ def test_files_honour_the_umask(umask: int, mode: int, tmp_path) -> None:
         run_dir.write_config({"status": "running", "config": {}})
         run_dir.save_checkpoint({"t": 0})
         rundir_module.atomic_write_bytes(tmp_path / "other.txt", b"x")
-        from pimbrl.experiments._files import atomic_write_bytes
+        from pimbrl.fileio import atomic_write_bytes
+        from pimbrl.plotting import plt, save_figure
 
         atomic_write_bytes(tmp_path / "summary.json", b"{}")
+        save_figure(plt.figure(), tmp_path / "figure.png")
     finally:
         os.umask(old)
-    for path in (run_dir.config_path, run_dir.checkpoint_path, tmp_path / "other.txt", tmp_path / "summary.json"):
+    written = (
+        run_dir.config_path,
+        run_dir.checkpoint_path,
+        tmp_path / "other.txt",
+        tmp_path / "summary.json",
+        tmp_path / "figure.png",
+    )
+    for path in written:
         assert stat.S_IMODE(path.stat().st_mode) == mode, path
 
 

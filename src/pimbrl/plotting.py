@@ -20,6 +20,8 @@ if TYPE_CHECKING:
 
     from .simulate import EpisodeRecord
 
+from .fileio import new_file_mode
+
 __all__ = ["STATE_LABELS", "plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band"]
 
 STATE_LABELS = {
@@ -34,9 +36,7 @@ def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png.tmp")
     if hasattr(os, "fchmod"):  # the mode of a new file (0o666 less the umask), not the temporary's 0600
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.fchmod(fd, 0o666 & ~mask)
+        os.fchmod(fd, new_file_mode())
     os.close(fd)
     try:
         fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight")

@@ -45,10 +45,10 @@ from typing import Any
 import numpy as np
 
 from ..config import ConfigError, from_dict, to_dict
+from ..fileio import atomic_write_bytes
 from ..training.cli_args import parse_train_args
-from ..training.config import TrainConfig, did_you_mean, inapplicable_reason, resolve_config, typed_overrides
+from ..training.config import TrainConfig, applicable_overrides, did_you_mean, resolve_config, typed_overrides
 from ..training.rundir import RunDirectory
-from ._files import atomic_write_bytes
 
 __all__ = [
     "CHILD_LOG",
@@ -130,13 +130,9 @@ def plan_runs(
         fields: dict[str, Any] = {"method": method}
         if label == "mfrl-matched":  # the user's utd wins
             fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}).utd
-        for key, value in overrides.items():
-            reason = inapplicable_reason(env_id, method, agent, key)
-            if reason is None:
-                fields[key] = value
-                used.add(key)
-            else:
-                reasons.setdefault(key, reason)
+        applied = applicable_overrides(env_id, method, agent, overrides, reasons)
+        fields.update(applied)
+        used.update(applied)
         for seed in seeds:
             cfg = resolve_config(env_id, {**fields, "seed": seed})
             specs.append(RunSpec(label, seed, root / label / f"seed{seed}", cfg))

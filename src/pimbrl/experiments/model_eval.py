@@ -27,9 +27,9 @@ import torch
 
 from ..config import validate
 from ..envs import PhysicsEnv, Task
+from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.residual import Scheme
-from ..training.rundir import atomic_write_bytes
 from .model_eval_config import DEFAULTS, ModelEvalConfig
 
 __all__ = ["OUT_OF_SAMPLE", "ModelEvalConfig", "collect_transitions", "run_model_eval"]

@@ -30,9 +30,9 @@ import numpy as np
 import torch
 
 from ..envs import PhysicsEnv, Task
+from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.state_sources import available_sources, broad_actions, broad_states
-from ._files import atomic_write_bytes
 from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _random_env_actions, collect_transitions
 
 __all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]

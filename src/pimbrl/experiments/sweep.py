@@ -48,10 +48,10 @@ from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, typed_value
+from ..fileio import atomic_write_bytes
 from ..training import METHODS, RunDirectory, TrainConfig
 from ..training.cli_args import parse_train_args
-from ..training.config import did_you_mean, inapplicable_reason, resolve_config, typed_overrides
-from ._files import atomic_write_bytes
+from ..training.config import applicable_overrides, did_you_mean, resolve_config, typed_overrides
 
 __all__ = ["SweepSpec", "Trial", "execute_trial", "load_sweep", "plan_trials", "ray_available", "run_sweep"]
 
@@ -234,13 +234,9 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
             swept = typed_overrides(dict(params))
             agent = swept.get("agent", fixed.get("agent", TrainConfig.agent))
             fields = dict(swept)
-            for key, value in fixed.items():
-                reason = inapplicable_reason(env_id, method, agent, key)
-                if reason is None:
-                    fields[key] = value
-                    used.add(key)
-                else:
-                    reasons.setdefault(key, reason)
+            applied = applicable_overrides(env_id, method, agent, fixed, reasons)
+            fields.update(applied)
+            used.update(applied)
             for seed in spec.seeds:
                 try:
                     cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed})

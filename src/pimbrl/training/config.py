@@ -378,6 +378,24 @@ def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
         raise ConfigError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}{did_you_mean(value, choices)}")
 
 
+def applicable_overrides(
+    env: str, method: str, agent: str, overrides: Mapping[str, Any], reasons: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """The ``overrides`` that apply to a run of ``method`` with ``agent`` on ``env``.
+
+    For each one left out, the reason is recorded in ``reasons`` (first reason per field), so that a
+    caller applying shared overrides to several runs can report those that apply to none.
+    """
+    kept: dict[str, Any] = {}
+    for key, value in overrides.items():
+        reason = inapplicable_reason(env, method, agent, key)
+        if reason is None:
+            kept[key] = value
+        elif reasons is not None:
+            reasons.setdefault(key, reason)
+    return kept
+
+
 def typed_overrides(overrides: Mapping[str, Any]) -> dict[str, Any]:
     """``overrides`` (dotted field paths -> values), checked and typed.
 

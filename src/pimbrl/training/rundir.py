@@ -37,7 +37,6 @@ import pickle
 import re
 import socket
 import sys
-import tempfile
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any, ClassVar
@@ -46,6 +45,7 @@ import numpy as np
 import torch
 
 from ..config import ConfigError
+from ..fileio import atomic_write_bytes
 
 __all__ = [
     "CHECKPOINT_VERSION",
@@ -77,50 +77,6 @@ class CheckpointError(ValueError):
 
 class RunLockedError(FileExistsError):
     """Another process holds the lock of a run directory; the message names it."""
-
-
-def _umask() -> int:
-    """The process's umask, read without changing it where the OS allows (Linux: /proc)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a fsynced temporary file and an atomic rename.
-
-    The file gets the mode a newly created file would get (``0o666`` less the umask, e.g. 0644), not
-    the 0600 of the temporary file.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        if hasattr(os, "fchmod"):
-            os.fchmod(fd, 0o666 & ~_umask())
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-    try:  # make the rename itself durable
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-    except OSError:
-        pass
 
 
 def pack_checkpoint(payload: bytes) -> bytes:
