@@ -25,6 +25,8 @@ def test_sources_exist_where_the_physics_declares_them() -> None:
     with pytest.raises(ValueError, match="not available for"):
         parse_sources("policy,box", KuramotoSivashinsky())
     assert parse_sources("policy, symmetry", KuramotoSivashinsky()) == ("policy", "symmetry")
+    assert parse_sources("auto", KuramotoSivashinsky()) == ("policy", "imagined", "symmetry", "scaled", "noise")
+    assert parse_sources("auto", Pendulum()) == ("policy", "imagined", "box")
 
 
 def test_box_states_cover_the_admissible_box() -> None:

@@ -94,7 +94,13 @@ def _smooth_noise(dim: int, n: int, rng: np.random.Generator, modes: int = 6) ->
 
 
 def parse_sources(text: str | Sequence[str], physics: Physics) -> tuple[str, ...]:
-    """Validate a source list (``"policy,symmetry"`` or a sequence) against what ``physics`` offers."""
+    """Validate a source list (``"policy,symmetry"`` or a sequence) against what ``physics`` offers.
+
+    ``"auto"`` is every source ``physics`` offers: the loop's two plus ``symmetry, scaled, noise`` for the
+    PDEs and ``box`` for the ODEs.
+    """
+    if text == "auto":
+        return available_sources(physics)
     names = tuple(s.strip() for s in (text.split(",") if isinstance(text, str) else text) if s.strip())
     have = available_sources(physics)
     bad = [s for s in names if s not in have]
