@@ -151,3 +151,16 @@ def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
     assert {r["horizon"] for r in rows} == {"1", "3"} and {r["split"] for r in rows} == {"in", "out"}
     assert all(float(r["mean"]) >= 0 for r in rows) and (out / "study.png").exists()
     assert main([*args[:3], str(tmp_path / "bad"), "--labels", "10", "--sources", "symmetry"]) == 2
+
+
+def test_the_study_measures_errors_in_the_states_own_geometry() -> None:
+    """A pendulum prediction just across the +-pi seam is a small error, not (2 pi)^2."""
+    from pimbrl.envs import PendulumTask
+    from pimbrl.experiments.model_study import _rollout_mse
+    from pimbrl.models import TransitionData
+
+    task = PendulumTask()
+    near_pi = torch.tensor([[np.pi - 1e-3, 0.0]], dtype=torch.float32)
+    across = torch.tensor([[-np.pi + 1e-3, 0.0]], dtype=torch.float32)
+    step = [TransitionData(near_pi, torch.zeros(1, 1), across)]
+    assert _rollout_mse(None, step, 1, task)[0] < 1e-5

@@ -110,15 +110,18 @@ def _check_sources(sources: Sequence[str], task: Task) -> tuple[str, ...]:
     return tuple(sources)
 
 
-def _rollout_mse(model: TransitionModel | None, data: list[TransitionData], horizon: int) -> np.ndarray:
-    """Per-trajectory MSE after ``horizon`` chained steps (``data[i]`` is step ``i`` of every trajectory)."""
+def _rollout_mse(model: TransitionModel | None, data: list[TransitionData], horizon: int, task: Task) -> np.ndarray:
+    """Per-trajectory MSE after ``horizon`` chained steps (``data[i]`` is step ``i`` of every trajectory).
+
+    Measured in the state's own geometry: the pendulum's angle difference is wrapped, as in the data loss.
+    """
     u = data[0].state
     with torch.no_grad():
         for i in range(horizon):
             u = u if model is None else model.predict_next(u, data[i].action)
     truth = data[horizon - 1].next_state
     assert truth is not None
-    return (u - truth).double().pow(2).mean(dim=-1).numpy()
+    return task.physics.state_difference(u.double(), truth.double()).pow(2).mean(dim=-1).numpy()
 
 
 def _trajectories(
@@ -180,7 +183,7 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
                     model = _train(task, cfg, name, labelled, observed, sources, seed, log)
                 for split, traj in tests.items():
                     for h in horizons:
-                        mse = _rollout_mse(model, traj, h)
+                        mse = _rollout_mse(model, traj, h, task)
                         rows.append(
                             {
                                 "seed": seed,
