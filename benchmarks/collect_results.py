@@ -80,6 +80,38 @@ def model_eval_table(summaries: dict[str, dict]) -> str:
     return "\n".join(rows)
 
 
+def model_study_table(record: dict) -> str:
+    """One row per label count: mean (min-max over seeds) one-step MSE of each model, in and out of sample."""
+    rows = [
+        f"{record['env']} ({record['seeds']} seeds, {record['steps']} gradient steps, model "
+        f"{'mlp' if record['env'] in ('cartpole', 'pendulum') else record['model']}; one-step next-state MSE, "
+        "mean over seeds (min to max))",
+        "",
+        "| labels | split | data-only | physics, loop sources (substep units) | physics, broad sources (step units) | "
+        "data / physics (broad) |",
+        "|---|---|---|---|---|---|",
+    ]
+
+    def cell(block: dict | None, labels: int, model: str, split: str) -> tuple[str, float | None]:
+        if not block:
+            return "—", None
+        for r in block["summary"]:
+            if (r["labels"], r["model"], r["split"], r["horizon"]) == (labels, model, split, 1):
+                return f"{r['mean']:.1e} ({r['min']:.1e} to {r['max']:.1e})", r["mean"]
+        return "—", None
+
+    loop, broad = record.get("loop_substep"), record.get("broad_step")
+    labels = sorted({r["labels"] for b in (loop, broad) if b for r in b["summary"]})
+    for n in labels:
+        for split in ("in", "out"):
+            data, d = cell(broad or loop, n, "data" if n else "no-change", split)
+            lp, _ = cell(loop, n, "physics", split)
+            bp, b = cell(broad, n, "physics", split)
+            ratio = f"{d / b:.1f}" if d and b else "—"
+            rows.append(f"| {n:,} | {split} | {data} | {lp} | {bp} | {ratio} |")
+    return "\n".join(rows)
+
+
 def main(roots: list[Path]) -> None:
     RESULTS.mkdir(exist_ok=True)
     evals = {}
@@ -101,6 +133,8 @@ def main(roots: list[Path]) -> None:
             shutil.copyfile(path, RESULTS / f"model_eval_{path.parent.name}.json")
     if evals:
         print(f"## model errors (next-state MSE)\n\n{model_eval_table(evals)}")
+    for path in sorted(RESULTS.glob("model_study_*.json")):
+        print(f"## {path.stem}\n\n{model_study_table(json.loads(path.read_text()))}\n")
 
 
 if __name__ == "__main__":

@@ -62,7 +62,8 @@ def main() -> None:
         print(f"{args.env} {name}:")
         for r in study["summary"]:
             if r["horizon"] == 1:
-                print(f"  labels {r['labels']:5d} {r['model']:9s} {r['split']:3s}  mean {r['mean']:.2e} [{r['min']:.2e}, {r['max']:.2e}]")
+                spread = f"[{r['min']:.2e}, {r['max']:.2e}]"
+                print(f"  labels {r['labels']:5d} {r['model']:9s} {r['split']:3s}  mean {r['mean']:.2e} {spread}")
     record["ratio_data_over_physics"] = _ratios(record)
     _common.record(f"model_study_{args.env}_{kind}", record)
 
