@@ -241,6 +241,9 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "start_physics_after": 12_000,
                 "model_steps": 10,
                 "finetune_return": -55.0,
+                # the same reward rule for a model with untrained intermediate states (mbrl) as for one with
+                # trained ones (pimbrl), so that the two differ only in the physics
+                "reward_quadrature": "endpoints",
             },
         },
     },
