@@ -117,12 +117,12 @@ class DynaConfig:
         "convlstm", "PDE model: convlstm (the paper's) or equivariant (fully convolutional)", one_of("convlstm", "equivariant")
     )
     physics_sources: str = param(
-        "policy,imagined",
+        "auto",
         "pimbrl: state-action pairs of the physics loss, comma-separated: policy, imagined (the loop's), "
-        "symmetry, scaled, noise (PDEs), box (ODEs); see pimbrl.models.state_sources",
+        "symmetry, scaled, noise (PDEs), box (ODEs); auto: all the physics offers (pimbrl.models.state_sources)",
     )
     residual_units: str = param(
-        "substep",
+        "step",
         "pimbrl: units of the physics loss: substep (per sub-step increment) or step (x N^2)",
         one_of("substep", "step"),
     )
