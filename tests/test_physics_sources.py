@@ -164,3 +164,22 @@ def test_the_study_measures_errors_in_the_states_own_geometry() -> None:
     across = torch.tensor([[-np.pi + 1e-3, 0.0]], dtype=torch.float32)
     step = [TransitionData(near_pi, torch.zeros(1, 1), across)]
     assert _rollout_mse(None, step, 1, task)[0] < 1e-5
+
+
+def test_sources_an_environment_does_not_offer_are_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="box not available for pimbrl/KuramotoSivashinsky-v0"):
+        resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "pimbrl", "dyna.physics_sources": "policy,box"})
+    with pytest.raises(ConfigError, match="symmetry not available for pimbrl/CartPole-v0"):
+        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.physics_sources": "symmetry"})
+    assert resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl"}).dyna.physics_sources == "auto"
+
+
+def test_the_physics_loss_stays_on_after_physics_start(tmp_path) -> None:
+    """With physics_start below start_model_after, the physics loss is on in every model phase after it,
+    also once labels are used and before n_sR is reached."""
+    cfg = _pendulum("pimbrl", physics_start=100, start_model_after=250, start_physics_after=10**6, physics_sources="box")
+    run = create_run(cfg, tmp_path / "run", progress=False)
+    seen = []
+    train(run, on_event=lambda name, r: seen.append(dict(r.model.metrics)) if name == "model_phase" else None)
+    assert all("model/physics_loss" in m for m in seen)
+    assert any("model/data_loss" in m for m in seen) and any("model/data_loss" not in m for m in seen)

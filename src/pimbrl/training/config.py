@@ -470,10 +470,34 @@ def resolve_config(
 
 
 def _check_runnable(cfg: TrainConfig) -> None:
-    """What validation of the fields cannot see: the environment's keyword arguments, TensorBoard."""
+    """Check what validation of the fields cannot see.
+
+    The environment's keyword arguments, TensorBoard, the physics-loss sources the environment offers.
+    """
     check_env_kwargs(cfg.env, cfg.env_kwargs)
     if cfg.tensorboard:
         check_tensorboard()
+    if cfg.method == "pimbrl":
+        check_physics_sources(cfg.env, cfg.dyna.physics_sources)
+
+
+#: physics-loss sources by kind of system (what :func:`pimbrl.models.state_sources.available_sources`
+#: gives for the PDEs and for the ODEs, without building the physics)
+PDE_SOURCES = ("policy", "imagined", "symmetry", "scaled", "noise")
+ODE_SOURCES = ("policy", "imagined", "box")
+
+
+def check_physics_sources(env: str, text: str) -> None:
+    """A clear :class:`ConfigError` for a ``dyna.physics_sources`` the environment does not offer."""
+    if text == "auto":
+        return
+    have = PDE_SOURCES if is_pde_env(env) else ODE_SOURCES
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    bad = [name for name in names if name not in have]
+    if bad or not names:
+        raise ConfigError(
+            f"dyna.physics_sources: {', '.join(bad) or '(none)'} not available for {env}; choose from {', '.join(have)} or auto"
+        )
 
 
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:

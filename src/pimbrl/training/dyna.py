@@ -6,11 +6,15 @@ buffer D^f. The training loop (:func:`pimbrl.training.loop.train`) calls :meth:`
 
 1. **fit** - once the real buffer D^r holds ``n_sM`` transitions: ``model_steps`` gradient steps of the
    data loss L_D on real transitions (the held-out ones excluded); for PiMBRL, once D^r and D^f together
-   hold ``n_sR`` transitions, each step also carries the physics loss L_E on unlabelled state-action
-   pairs: real training states with actions of the current policy (exploration noise included), and
-   imagined pairs once imagination has begun;
+   hold ``n_sR`` transitions (or from ``physics_start`` real steps on, if set), each step also carries the
+   physics loss L_E on unlabelled state-action pairs from the configured sources (``physics_sources``:
+   real training states with the current policy's actions, imagined pairs, and label-free states -
+   symmetries, scalings, perturbations of observed fields, the admissible box; see
+   :mod:`pimbrl.models.state_sources`). With ``physics_start`` below ``n_sM`` PiMBRL trains on the physics
+   loss alone until labels are used, its normalisation fitted from the equation;
 2. **check** - L_D on the most recent held-out real transitions; the model is *in use* while it is below
-   lambda (and the run has not switched to model-free fine-tuning);
+   lambda, or below ``relative_threshold`` times the no-change prediction's error (``accuracy``), and the
+   run has not switched to model-free fine-tuning;
 3. **imagine** - while in use: ``rollouts`` rollouts of ``l_M`` chained model steps from real start
    states, actions from the current policy with exploration noise, rewards and terminations from the
    physics; they go into D^f, whose oldest entries they replace;
@@ -122,13 +126,16 @@ class DynaModel:
             return
         n_real = len(real)
         with_labels = n_real >= d.start_model_after
-        physics_only = not with_labels and self._physics_only_due(n_real)
-        if (with_labels or physics_only) and d.model_steps > 0:
-            train_idx, holdout_idx = split_indices(real)
+        physics_started = self._physics_started(n_real)
+        physics_only = not with_labels and physics_started
+        train_idx, holdout_idx = split_indices(real)
+        if (with_labels or physics_only) and d.model_steps > 0 and len(train_idx) > 0:
             with timed("model_train"):
                 labelled = BufferView(real, train_idx) if with_labels else None
                 unlabelled = None
-                if physics_only or (self.trainer.residual is not None and n_real + len(self.imagined) >= d.start_physics_after):
+                if physics_started or (
+                    self.trainer.residual is not None and n_real + len(self.imagined) >= d.start_physics_after
+                ):
                     unlabelled = UnlabelledPairs(
                         real, train_idx, self.imagined, self.task, self.adapter, agent, self.streams, self.sources
                     )
@@ -148,16 +155,16 @@ class DynaModel:
                 recent = BufferView(real, holdout_idx[-d.validation_size :]).all()  # oldest first: the most recent
                 self.val_mse = self.trainer.validation_mse(recent)
                 self.baseline_mse = no_change_mse(self.physics, recent)
-                if d.accuracy == "relative":
-                    self.in_use = self.val_mse < d.relative_threshold * self.baseline_mse
+                if d.accuracy == "relative":  # <=: an exact model of a system at rest is accurate too
+                    self.in_use = bool(np.isfinite(self.val_mse)) and self.val_mse <= d.relative_threshold * self.baseline_mse
                 else:
                     self.in_use = self.val_mse < d.threshold
         if self.in_use and d.rollouts > 0:
             with timed("imagine"):
                 self.imagine(real, agent, d.rollouts)
 
-    def _physics_only_due(self, n_real: int) -> bool:
-        """PiMBRL before ``start_model_after``: the physics loss alone, once ``physics_start`` steps are done."""
+    def _physics_started(self, n_real: int) -> bool:
+        """PiMBRL with ``physics_start``: the physics loss from then on (alone before ``start_model_after``)."""
         start = self.cfg.dyna.physics_start
         return self.trainer.residual is not None and start is not None and n_real >= start
 
@@ -293,12 +300,12 @@ def split_indices(buf: ReplayBuffer) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class UnlabelledPairs:
-    """State-action pairs for the physics loss, which needs no label.
+    """State-action pairs for the physics loss, which needs no label: an equal share per source.
 
-    Real training states with actions of the current policy (exploration noise included) and, once
-    imagination has begun, the imagined buffer's pairs - half and half. The physics loss joins once D^r
-    and D^f together hold ``n_sR`` transitions, so it can shape the model before the model is accurate
-    enough to be used. Actions and their noise come from the ``physics_states`` stream.
+    ``policy``: real training states with actions of the current policy (exploration noise included);
+    ``imagined``: the imagined buffer's pairs (its share goes to the other sources while the buffer is
+    empty; with ``imagined`` alone, to ``policy``); the broad sources of :mod:`pimbrl.models.state_sources`
+    from the real training states. Actions and their noise come from the ``physics_states`` stream.
     """
 
     def __init__(
@@ -346,8 +353,9 @@ class UnlabelledPairs:
                 img = torch.from_numpy(rng.integers(0, len(self.imagined), size=n))
                 states.append(self.imagined.extra("state", img))
                 acts.append(self.imagined.extra("physical_action", img))
-            else:
-                seeds = self.real.extra("state", self.idx)
+            else:  # broad_states draws n seeds among those it is given: gather just n rows (none for the box)
+                pick = self.idx[torch.from_numpy(self.rng.integers(0, len(self.idx), size=n))]
+                seeds = self.real.extra("state", pick) if source != "box" else self.real.extra("state", pick[:1])
                 states.append(broad_states(self.task.physics, source, seeds, n, self.rng))
                 acts.append(broad_actions(self.task.physics, n, self.rng))
         return TransitionData(torch.cat(states), torch.cat(acts))
