@@ -244,6 +244,9 @@ PRESETS: dict[str, dict[str, Any]] = {
                 # the same reward rule for a model with untrained intermediate states (mbrl) as for one with
                 # trained ones (pimbrl), so that the two differ only in the physics
                 "reward_quadrature": "endpoints",
+                # the model study (docs/results.md): data-only, out of sample, 2.3e-5 against 2.7e-3 for the
+                # ConvLSTM at 500 labels; the same model for both methods
+                "model": "equivariant",
             },
         },
     },
