@@ -32,8 +32,8 @@ import torch
 from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
-from ..models.state_sources import available_sources, broad_actions, broad_states
-from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _random_env_actions, collect_transitions
+from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
+from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions
 
 __all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
 
@@ -64,40 +64,28 @@ class PhysicsPairs:
 
     def refresh(self, rng: np.random.Generator) -> None:
         """Recompute the states the model imagines from the seeds (source ``imagined``)."""
-        if "imagined" not in self.sources:
-            return
-        out, u = [self.seeds], self.seeds
-        with torch.no_grad():
-            for _ in range(self.length):
-                a = self._random_actions(len(u), rng)
-                u = self.model.predict_next(u, a)
-                u = u[torch.as_tensor(~self.physics.diverged(u.double().numpy()))]
-                out.append(u)
-        self._imagined = torch.cat(out)
+        if "imagined" in self.sources:
+            self._imagined = _imagined_states(self.model, self.task, TransitionData(self.seeds, self.seeds[:0]), self.length, rng)
 
     def __len__(self) -> int:
         return len(self.seeds)
 
     def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
         """``batch`` pairs, an equal share from each source."""
-        counts = np.full(len(self.sources), batch // len(self.sources))
-        counts[: batch - counts.sum()] += 1
         states, actions = [], []
-        for source, n in zip(self.sources, counts, strict=True):
+        for source, n in zip(self.sources, even_shares(batch, len(self.sources)), strict=True):
             if n == 0:
                 continue
-            if source in ("train", "imagined"):
+            if source in ("train", "imagined"):  # observed or imagined states with random actions
                 pool = self.seeds if source == "train" else self._imagined
-                states.append(pool.index_select(0, torch.from_numpy(rng.integers(0, len(pool), size=n))))
-                actions.append(self._random_actions(int(n), rng))
+                pairs = _unlabelled(pool.index_select(0, torch.from_numpy(rng.integers(0, len(pool), size=n))), self.task, rng)
+                states.append(pairs.state)
+                actions.append(pairs.action)
             else:
-                states.append(broad_states(self.physics, source, self.seeds, int(n), rng))
-                actions.append(broad_actions(self.physics, int(n), rng))
+                state, action = broad_pairs(self.physics, source, self.seeds, n, rng)
+                states.append(state)
+                actions.append(action)
         return TransitionData(torch.cat(states), torch.cat(actions))
-
-    def _random_actions(self, n: int, rng: np.random.Generator) -> torch.Tensor:
-        a = self.task.physical_action(_random_env_actions(self.task, rng, n), n)
-        return torch.as_tensor(a, dtype=torch.float32)
 
 
 def _check_sources(sources: Sequence[str], task: Task) -> tuple[str, ...]:

@@ -29,7 +29,16 @@ import torch
 
 from ..physics import Physics
 
-__all__ = ["BROAD_SOURCES", "LOOP_SOURCES", "SOURCES", "available_sources", "broad_actions", "broad_states"]
+__all__ = [
+    "BROAD_SOURCES",
+    "LOOP_SOURCES",
+    "SOURCES",
+    "available_sources",
+    "broad_actions",
+    "broad_pairs",
+    "broad_states",
+    "even_shares",
+]
 
 #: sources held by the training loop (real buffer, imagined buffer)
 LOOP_SOURCES = ("policy", "imagined")
@@ -80,6 +89,19 @@ def broad_actions(physics: Physics, n: int, rng: np.random.Generator) -> torch.T
     bang = np.where(rng.random((n, physics.action_dim)) < 0.5, low, high)
     a = np.where(rng.random((n, 1)) < 0.5, uniform, bang)
     return torch.as_tensor(a, dtype=torch.float32)
+
+
+def broad_pairs(
+    physics: Physics, source: str, seeds: torch.Tensor, n: int, rng: np.random.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` label-free states of ``source`` (:func:`broad_states`) with their actions (:func:`broad_actions`)."""
+    states = broad_states(physics, source, seeds, n, rng)
+    return states, broad_actions(physics, n, rng)
+
+
+def even_shares(total: int, parts: int) -> list[int]:
+    """``total`` split into ``parts`` shares that differ by at most one, the larger ones first."""
+    return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
 
 
 def _smooth_noise(dim: int, n: int, rng: np.random.Generator, modes: int = 6) -> torch.Tensor:

@@ -9,6 +9,7 @@ private fields of the environment.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -24,26 +25,22 @@ from .streams import RandomStreams
 __all__ = ["Collector", "EpisodeEnd", "StepResult"]
 
 
+@dataclass(frozen=True, slots=True)
 class StepResult:
     """One real step: the stored transition, whether the episode ended, and whether the step blew up."""
 
-    __slots__ = ("done", "transition", "valid")
-
-    def __init__(self, transition: Transitions, done: bool, valid: bool) -> None:
-        self.transition = transition
-        self.done = done
-        self.valid = valid
+    transition: Transitions
+    done: bool
+    valid: bool
 
 
+@dataclass(frozen=True, slots=True)
 class EpisodeEnd:
     """A finished training episode (a row of ``episodes.csv``)."""
 
-    __slots__ = ("episode", "length", "return_")
-
-    def __init__(self, episode: int, return_: float, length: int) -> None:
-        self.episode = episode
-        self.return_ = return_
-        self.length = length
+    episode: int
+    return_: float
+    length: int
 
 
 class Collector:

@@ -38,7 +38,7 @@ from ..buffers import Batch, ReplayBuffer, physics_extras
 from ..envs import Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
-from ..models.state_sources import broad_actions, broad_states, parse_sources
+from ..models.state_sources import broad_actions, broad_pairs, even_shares, parse_sources
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from .config import TrainConfig
@@ -337,7 +337,7 @@ class UnlabelledPairs:
         ``imagined`` gives its share to the other sources until the imagined buffer has data.
         """
         sources = [s for s in self.sources if s != "imagined" or len(self.imagined)] or ["policy"]
-        counts = [batch // len(sources) + (1 if i < batch % len(sources) else 0) for i in range(len(sources))]
+        counts = even_shares(batch, len(sources))
         states: list[torch.Tensor] = []
         acts: list[torch.Tensor] = []
         for source, n in zip(sources, counts, strict=True):
@@ -356,8 +356,9 @@ class UnlabelledPairs:
             else:  # broad_states draws n seeds among those it is given: gather just n rows (none for the box)
                 pick = self.idx[torch.from_numpy(self.rng.integers(0, len(self.idx), size=n))]
                 seeds = self.real.extra("state", pick) if source != "box" else self.real.extra("state", pick[:1])
-                states.append(broad_states(self.task.physics, source, seeds, n, self.rng))
-                acts.append(broad_actions(self.task.physics, n, self.rng))
+                pair = broad_pairs(self.task.physics, source, seeds, n, self.rng)
+                states.append(pair[0])
+                acts.append(pair[1])
         return TransitionData(torch.cat(states), torch.cat(acts))
 
 
