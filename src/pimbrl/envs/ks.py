@@ -27,6 +27,10 @@ class KSTask(Task):
         divergence_penalty: reward of a step that blows up, a finite number (default -100; a settled uncontrolled episode
             returns about -920, and with gamma = 0.977 the discounted cost of the rest of any episode
             is below 100).
+        **coefficients: physical coefficients of :class:`pimbrl.physics.KuramotoSivashinsky` that differ from
+            the paper's (``anti_diffusion``, ``hyper_diffusion``, ``convection``, ``damping``,
+            ``actuator_width``), e.g. ``convection=1.3``. The initial-state pools are drawn from the paper's
+            system whatever the coefficients.
     """
 
     max_episode_steps = 400
@@ -42,8 +46,11 @@ class KSTask(Task):
         initial_states: str | np.ndarray = "train",
         pool_config: KSPoolConfig | dict | None = None,
         divergence_penalty: float = -100.0,
+        **coefficients: float,
     ) -> None:
-        self.physics = KuramotoSivashinsky(reward=reward, periodic_actuators=check_bool(periodic_actuators, "periodic_actuators"))
+        self.physics = KuramotoSivashinsky(
+            reward=reward, periodic_actuators=check_bool(periodic_actuators, "periodic_actuators")
+        ).with_coefficients(**coefficients)
         self.divergence_penalty = check_finite_number(divergence_penalty, "divergence_penalty")
         if pool_config is not None and not isinstance(pool_config, (KSPoolConfig, dict)):
             raise TypeError(f"pool_config must be a KSPoolConfig or a dict of its fields, got {pool_config!r}")
@@ -152,7 +159,9 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
 
     ## Arguments
     ``reward``, ``periodic_actuators`` (a bool), ``initial_states``, ``pool_config``, ``divergence_penalty``
-    (see :class:`pimbrl.envs.ks.KSTask`).
+    (see :class:`pimbrl.envs.ks.KSTask`); the physical coefficients ``anti_diffusion``, ``hyper_diffusion``,
+    ``convection`` (1 each), ``damping`` (0: a term ``-mu u`` added to the right-hand side) and
+    ``actuator_width`` (1), e.g. ``gym.make("pimbrl/KuramotoSivashinsky-v0", convection=1.3)``.
 
     ## Version History
     * v0: initial version, numerics of the authors' code (docs/environments.md, section

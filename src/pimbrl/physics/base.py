@@ -13,7 +13,12 @@ torch tensors of any floating dtype, batched over leading dimensions; the state 
 
 from __future__ import annotations
 
+import difflib
+import functools
+import inspect
+import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
@@ -21,7 +26,27 @@ import torch
 
 Array = TypeVar("Array", np.ndarray, torch.Tensor)
 
-__all__ = ["Array", "Physics", "superpose", "xp_of"]
+__all__ = ["Array", "Physics", "records_arguments", "superpose", "xp_of"]
+
+PhysicsT = TypeVar("PhysicsT", bound="Physics")
+InitT = TypeVar("InitT", bound=Callable[..., None])
+
+
+def records_arguments(init: InitT) -> InitT:
+    """Decorate a :class:`Physics` constructor so that the object remembers the arguments it was built with.
+
+    :meth:`Physics.with_coefficients` rebuilds the system from them with some coefficients changed.
+    """
+    signature = inspect.signature(init)
+
+    @functools.wraps(init)
+    def wrapper(self: Physics, *args: Any, **kwargs: Any) -> None:
+        bound = signature.bind(self, *args, **kwargs)
+        bound.apply_defaults()
+        init(self, *args, **kwargs)
+        self._arguments = {k: v for k, v in bound.arguments.items() if k != "self"}
+
+    return wrapper  # type: ignore[return-value]
 
 
 def xp_of(x: Any) -> Any:
@@ -66,6 +91,33 @@ class Physics(ABC):
     dt: float
     substeps: int
     divergence_bound: float = np.inf
+    #: names of the physical coefficients (constructor arguments and attributes of the same name) that an
+    #: environment can be given and that a physics prior can get wrong: see :meth:`with_coefficients`
+    coefficients: tuple[str, ...] = ()
+    _arguments: dict[str, Any]
+
+    def coefficient_values(self) -> dict[str, float]:
+        """The physical coefficients of this system, by name (see :attr:`coefficients`)."""
+        return {name: float(getattr(self, name)) for name in self.coefficients}
+
+    def with_coefficients(self: PhysicsT, **values: float) -> PhysicsT:
+        """The same system with some physical coefficients changed; every other setting is kept.
+
+        Raises:
+            ValueError: for a name that is not one of :attr:`coefficients`, or a value that is not a finite
+                number.
+        """
+        for name, value in values.items():
+            if name not in self.coefficients:
+                known = ", ".join(self.coefficients) or "none"
+                close = difflib.get_close_matches(name, self.coefficients, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise ValueError(f"{self.name} has no coefficient {name!r}{hint}; its coefficients are: {known}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"{self.name}: coefficient {name} must be a finite number, got {value!r}")
+        if not hasattr(self, "_arguments"):
+            raise TypeError(f"{type(self).__name__}.__init__ is not decorated with @records_arguments")
+        return type(self)(**{**self._arguments, **{k: float(v) for k, v in values.items()}})
 
     @property
     def control_dt(self) -> float:

@@ -10,12 +10,13 @@ blows up in the first control step.
 
 from __future__ import annotations
 
-from typing import overload
+from collections.abc import Mapping
+from typing import Any, overload
 
 import numpy as np
 import torch
 
-from .base import Array
+from .base import Array, records_arguments, xp_of
 from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil
@@ -43,10 +44,20 @@ class Burgers(SemilinearPDE):
         episode_steps: control steps in one period of the reference (60).
         ref_mean, ref_amplitude: the reference is ``ref_mean + ref_amplitude * sin(2 pi k / episode_steps)``.
         divergence_bound: ``|u|`` beyond this counts as blown up (10).
+        convection: factor of the convection term ``(u^2/2)_xi`` (1).
+        damping: coefficient ``mu`` of a linear damping term ``-mu u`` on the right-hand side (0: none; a term
+            a physics prior may miss).
+        actuator_width: half-width ``w`` of the actuators ``exp(-((xi - c)/w)^2)`` (1/15, i.e. the paper's
+            ``exp(-225 (xi - c)^2)``).
+
+    The physical coefficients (:attr:`coefficients`) are ``nu``, ``convection``, ``damping`` and
+    ``actuator_width``.
     """
 
     name = "burgers"
+    coefficients = ("nu", "convection", "damping", "actuator_width")
 
+    @records_arguments
     def __init__(
         self,
         n: int = 150,
@@ -59,11 +70,16 @@ class Burgers(SemilinearPDE):
         ref_mean: float = 0.5,
         ref_amplitude: float = 0.05,
         divergence_bound: float = 10.0,
+        convection: float = 1.0,
+        damping: float = 0.0,
+        actuator_width: float = 1 / 15,
     ) -> None:
         if n < 5:
             raise ValueError(f"Burgers needs at least 5 grid points, got n={n}")
         if nu < 0 or dt <= 0 or substeps < 1:
             raise ValueError(f"need nu >= 0, dt > 0, substeps >= 1; got nu={nu}, dt={dt}, substeps={substeps}")
+        if not actuator_width > 0:
+            raise ValueError(f"actuator_width must be > 0, got {actuator_width}")
         self.n = int(n)
         self.dx = 1.0 / self.n
         self.nu = float(nu)
@@ -77,15 +93,40 @@ class Burgers(SemilinearPDE):
         self.ref_mean = float(ref_mean)
         self.ref_amplitude = float(ref_amplitude)
         self.divergence_bound = float(divergence_bound)
+        self.convection = float(convection)
+        self.damping = float(damping)
+        self.actuator_width = float(actuator_width)
         self.x = np.arange(self.n) * self.dx
-        #: ``(2, n)`` actuator shapes ``exp(-225 (xi - 0.25)^2)`` and ``exp(-225 (xi - 0.75)^2)``
-        self.actuator_shapes = np.exp(-225.0 * (self.x[None, :] - np.array([0.25, 0.75])[:, None]) ** 2)
-        #: the linear operator ``nu D2 / dx^2``
+        #: ``(2, n)`` actuator shapes, ``exp(-225 (xi - 0.25)^2)`` and ``exp(-225 (xi - 0.75)^2)`` by default
+        self.actuator_shapes = self._shapes(self.actuator_width)
+        #: the linear operator ``nu D2 / dx^2`` (``- mu`` with damping)
         self.linear = BURGERS_D2.scaled(self.nu / self.dx**2, "nu*D2/dx^2")
+        if self.damping != 0.0:
+            self.linear = self.linear + Stencil((0,), (-self.damping,), "-mu")
         #: coefficient of ``Db(u^2)``: ``-(u^2/2)_xi = -Db(u^2) / (2 dx)``
-        self.nonlinear_coef = -1.0 / (2.0 * self.dx)
+        self.nonlinear_coef = -self.convection / (2.0 * self.dx)
         self.method = "euler"
         self._kernel: PDEKernel | None = None
+        self._check_stability(2.0)  # explicit Euler on a real negative spectrum
+
+    def _shapes(self, width: Any) -> Any:
+        xp = xp_of(width)
+        d = xp.as_tensor(self.x[None, :] - self._centres[:, None]) if xp is torch else self.x[None, :] - self._centres[:, None]
+        return xp.exp(-(1.0 / width**2) * d**2)
+
+    _centres = np.array([0.25, 0.75])
+
+    def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
+        """``lam = nu D2/dx^2 - mu``, ``-convection / (2 dx)`` and the actuator shapes (see the base class)."""
+        nu, mu = self._coefficient(values, "nu"), self._coefficient(values, "damping")
+        d2 = BURGERS_D2.symbol(self.n)[: self.n // 2 + 1].real / self.dx**2
+        tensors = [v for v in values.values() if isinstance(v, torch.Tensor)]
+        if tensors:
+            d2 = torch.as_tensor(d2, dtype=torch.float64)
+        lam = nu * d2 - mu
+        nonlinear = -self._coefficient(values, "convection") / (2.0 * self.dx)
+        width = self._coefficient(values, "actuator_width")
+        return lam, nonlinear, self._shapes(width)
 
     # ------------------------------------------------------------------ equation
     def upwind(self, u: Array) -> Array:

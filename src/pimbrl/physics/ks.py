@@ -12,11 +12,14 @@ with 6th-order central D2, D4, a sign-switched 4th-order one-sided upwind differ
 
 from __future__ import annotations
 
-from typing import Literal
+import functools
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import numpy as np
+import torch
 
-from .base import Array, xp_of
+from .base import Array, records_arguments, xp_of
 from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil, apply_upwind
@@ -54,10 +57,21 @@ class KuramotoSivashinsky(SemilinearPDE):
         periodic_actuators: wrap the Gaussian actuator shapes around the periodic domain (the
             authors' code does not, so the actuator at x = 0 is half a bump).
         divergence_bound: ``|u|`` beyond this counts as blown up (100; chaotic states stay below ~5).
+        anti_diffusion, hyper_diffusion, convection: factors of the terms ``u_xx``, ``u_xxxx`` and ``u u_x``
+            (1 each: ``u_t + a u_xx + b u_xxxx + c u u_x = f``).
+        damping: coefficient ``mu`` of a linear damping term ``-mu u`` on the right-hand side (0: none; a term
+            a physics prior may miss).
+        actuator_width: standard deviation ``s`` of the Gaussian actuators
+            ``exp(-(x - x_i)^2 / (2 s^2)) / (sqrt(2 pi) s)`` (1).
+
+    The physical coefficients (:attr:`coefficients`) are ``anti_diffusion``, ``hyper_diffusion``,
+    ``convection``, ``damping`` and ``actuator_width``.
     """
 
     name = "ks"
+    coefficients = ("anti_diffusion", "hyper_diffusion", "convection", "damping", "actuator_width")
 
+    @records_arguments
     def __init__(
         self,
         n: int = 64,
@@ -68,6 +82,11 @@ class KuramotoSivashinsky(SemilinearPDE):
         reward: RewardMode = "code",
         periodic_actuators: bool = False,
         divergence_bound: float = 100.0,
+        anti_diffusion: float = 1.0,
+        hyper_diffusion: float = 1.0,
+        convection: float = 1.0,
+        damping: float = 0.0,
+        actuator_width: float = 1.0,
     ) -> None:
         if n < 2 * KS_D4.halo + 1:
             raise ValueError(f"KS needs at least {2 * KS_D4.halo + 1} grid points, got n={n}")
@@ -75,6 +94,10 @@ class KuramotoSivashinsky(SemilinearPDE):
             raise ValueError(f"reward must be 'code' or 'physical', got {reward!r}")
         if dt <= 0 or substeps < 1:
             raise ValueError(f"need dt > 0 and substeps >= 1, got dt={dt}, substeps={substeps}")
+        if not hyper_diffusion > 0:
+            raise ValueError(f"hyper_diffusion must be > 0 (without it the equation blows up), got {hyper_diffusion}")
+        if not actuator_width > 0:
+            raise ValueError(f"actuator_width must be > 0, got {actuator_width}")
         self.n = int(n)
         self.length = float(length)
         self.dx = self.length / self.n
@@ -88,19 +111,26 @@ class KuramotoSivashinsky(SemilinearPDE):
         self.periodic_actuators = bool(periodic_actuators)
         self.divergence_bound = float(divergence_bound)
 
+        self.anti_diffusion = float(anti_diffusion)
+        self.hyper_diffusion = float(hyper_diffusion)
+        self.convection = float(convection)
+        self.damping = float(damping)
+        self.actuator_width = float(actuator_width)
+
         self.x = np.arange(self.n) * self.dx
         self.actuator_centres = np.array([0.0, 0.25, 0.5, 0.75]) * self.length
-        dist = self.x[None, :] - self.actuator_centres[:, None]
-        if self.periodic_actuators:
-            dist = (dist + self.length / 2) % self.length - self.length / 2
         #: ``(4, n)`` actuator shape functions; the forcing is ``f = a @ actuator_shapes``.
-        self.actuator_shapes = np.exp(-(dist**2) / 2) / np.sqrt(2 * np.pi)
+        self.actuator_shapes = self._shapes(self.actuator_width)
 
         dx = self.dx
-        #: the linear operator ``-D4/dx^4 - D2/dx^2`` as one stencil
-        self.linear = KS_D4.scaled(-1 / dx**4, "-D4/dx^4") + KS_D2.scaled(-1 / dx**2, "-D2/dx^2")
+        #: the linear operator ``-D4/dx^4 - D2/dx^2`` as one stencil (with its coefficients; ``- mu`` with damping)
+        self.linear = KS_D4.scaled(-self.hyper_diffusion / dx**4, "-D4/dx^4") + KS_D2.scaled(
+            -self.anti_diffusion / dx**2, "-D2/dx^2"
+        )
+        if self.damping != 0.0:
+            self.linear = self.linear + Stencil((0,), (-self.damping,), "-mu")
         #: coefficient of the upwind term ``Dup(u^2)``
-        self.nonlinear_coef = -1.0 / (2.0 * dx)
+        self.nonlinear_coef = -self.convection / (2.0 * dx)
         # weights of the reward integrands [mean (D2u)^2, mean (Dup u^2)^2, mean (D1u)^2, mean u f]
         if reward == "code":
             self.reward_weights = np.array([1.0, 1.0, 0.0, 1.0])
@@ -108,6 +138,27 @@ class KuramotoSivashinsky(SemilinearPDE):
             self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
         self.method = "rk4"
         self._kernel: PDEKernel | None = None  # compiled on first use
+        self._check_stability(2.78)  # classic RK4 on a real negative spectrum
+
+    def _shapes(self, width: Any) -> Any:
+        dist = self.x[None, :] - self.actuator_centres[:, None]
+        if self.periodic_actuators:
+            dist = (dist + self.length / 2) % self.length - self.length / 2
+        xp = xp_of(width)
+        if xp is torch:
+            dist = torch.as_tensor(dist)
+        return xp.exp(-(dist**2) / (2 * width**2)) / (np.sqrt(2 * np.pi) * width)
+
+    def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
+        """``lam = -b D4/dx^4 - a D2/dx^2 - mu``, ``-c / (2 dx)`` and the actuator shapes (see the base class)."""
+        modes = self.n // 2 + 1
+        d2 = KS_D2.symbol(self.n)[:modes].real / self.dx**2
+        d4 = KS_D4.symbol(self.n)[:modes].real / self.dx**4
+        if any(isinstance(v, torch.Tensor) for v in values.values()):
+            d2, d4 = torch.as_tensor(d2, dtype=torch.float64), torch.as_tensor(d4, dtype=torch.float64)
+        get = functools.partial(self._coefficient, values)
+        lam = -get("hyper_diffusion") * d4 - get("anti_diffusion") * d2 - get("damping")
+        return lam, -get("convection") / (2.0 * self.dx), self._shapes(get("actuator_width"))
 
     # ------------------------------------------------------------------ equation
     def upwind(self, u: Array) -> Array:

@@ -18,8 +18,8 @@ a handful of intermediate states per control step and still be checked against t
 from __future__ import annotations
 
 from abc import abstractmethod
-from collections.abc import Callable
-from typing import Literal
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -52,6 +52,31 @@ class SemilinearPDE(Physics):
     actuator_shapes: np.ndarray
     method: Literal["euler", "rk4"]
     _kernel: PDEKernel | None = None
+
+    # ------------------------------------------------------------------ coefficients
+    @abstractmethod
+    def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
+        """The equation's parts as functions of its physical coefficients, for coefficients being learned.
+
+        ``values`` maps some of :attr:`coefficients` to floats or torch tensors (the others keep this object's
+        values). Returns ``(lam, nonlinear_coef, actuator_shapes)``: the real eigenvalues of ``L`` on the
+        ``n // 2 + 1`` rfft modes, the coefficient of the upwind term and the ``(action_dim, n)`` actuator
+        shapes; torch tensors, differentiable in the tensor values, where any value is a tensor. At this
+        object's own coefficients they equal :attr:`linear`'s symbol, :attr:`nonlinear_coef` and
+        :attr:`actuator_shapes` to round-off (tested).
+        """
+
+    def _coefficient(self, values: Mapping[str, Any], name: str) -> Any:
+        return values.get(name, getattr(self, name))
+
+    def _check_stability(self, limit: float) -> None:
+        """Refuse coefficients for which the explicit solver step is unstable (``dt |lambda|_max > limit``)."""
+        worst = float(np.max(np.abs(self.linear.symbol(self.n).real))) * self.dt
+        if worst > limit:
+            raise ValueError(
+                f"{self.name}: with these coefficients the {self.method} solver step is unstable "
+                f"(dt * |lambda|_max = {worst:.3g} > {limit}); give a smaller dt (and more substeps)"
+            )
 
     # ------------------------------------------------------------------ equation
     def forcing(self, a: Array) -> Array:
@@ -118,39 +143,67 @@ class SemilinearPDE(Physics):
         return self._kernel(u, a, self.actuator_shapes, self.dt, self.substeps, accumulate, weights)
 
 
+def etd_coefficients(lam: Any, h: float, contour_points: int = 32) -> dict[str, Any]:
+    """ETDRK4 coefficients ``E, E2, Q, f1, f2, f3`` of the linear eigenvalues ``lam`` and step ``h``.
+
+    NumPy arrays in, complex NumPy arrays out; a torch tensor in (e.g. eigenvalues that depend on trainable
+    coefficients), complex128 tensors out, differentiable in ``lam``. The phi-functions are contour means
+    (Kassam & Trefethen 2005), free of the cancellation of the direct formulas for small ``h lam``.
+    """
+    r = np.exp(1j * np.pi * (np.arange(1, contour_points + 1) - 0.5) / contour_points)
+    if isinstance(lam, torch.Tensor):
+        xp: Any = torch
+        lr = h * lam.to(torch.complex128)[:, None] + torch.as_tensor(r, device=lam.device)[None, :]
+        hl = h * lam.to(torch.complex128)
+    else:
+        xp = np
+        lr = h * lam[:, None] + r[None, :]
+        hl = h * lam
+    ex = xp.exp(lr)
+    return {
+        "E": xp.exp(hl),
+        "E2": xp.exp(hl / 2),
+        "Q": h * ((xp.exp(lr / 2) - 1) / lr).mean(1),
+        "f1": h * ((-4 - lr + ex * (4 - 3 * lr + lr**2)) / lr**3).mean(1),
+        "f2": h * ((2 + lr + ex * (-2 + lr)) / lr**3).mean(1),
+        "f3": h * ((-4 - 3 * lr - lr**2 + ex * (4 - lr)) / lr**3).mean(1),
+    }
+
+
 class ETDRK4:
     """Fourth-order exponential time differencing for ``du/dt = L u + M(u)`` with a circulant ``L``.
 
     Args:
-        linear: the periodic linear stencil ``L`` (its Fourier symbol gives the exact eigenvalues).
+        linear: the periodic linear stencil ``L`` (its Fourier symbol gives the exact eigenvalues), or the
+            real eigenvalues of ``L`` on the ``n // 2 + 1`` rfft modes directly: a NumPy array, or a torch
+            tensor (then the step is differentiable in them, for coefficients that are being learned).
         n: number of grid points.
         h: step size.
         contour_points: points of the contour integrals for the phi-functions.
     """
 
-    def __init__(self, linear: Stencil, n: int, h: float, contour_points: int = 32) -> None:
+    def __init__(self, linear: Stencil | np.ndarray | torch.Tensor, n: int, h: float, contour_points: int = 32) -> None:
         if h <= 0:
             raise ValueError(f"step size must be > 0, got {h}")
         self.n = int(n)
         self.h = float(h)
-        lam = linear.symbol(self.n)[: self.n // 2 + 1]  # rfft modes
-        r = np.exp(1j * np.pi * (np.arange(1, contour_points + 1) - 0.5) / contour_points)
-        lr = h * lam[:, None] + r[None, :]
-        ex = np.exp(lr)
-        self._coeffs = {
-            "E": np.exp(h * lam),
-            "E2": np.exp(h * lam / 2),
-            "Q": h * np.mean((np.exp(lr / 2) - 1) / lr, axis=1),
-            "f1": h * np.mean((-4 - lr + ex * (4 - 3 * lr + lr**2)) / lr**3, axis=1),
-            "f2": h * np.mean((2 + lr + ex * (-2 + lr)) / lr**3, axis=1),
-            "f3": h * np.mean((-4 - 3 * lr - lr**2 + ex * (4 - lr)) / lr**3, axis=1),
-        }
-        self._real = bool(np.allclose(lam.imag, 0.0))  # symmetric stencils: real coefficients
+        self._cache: dict[tuple[torch.dtype, torch.device], dict[str, torch.Tensor]] = {}
+        if isinstance(linear, torch.Tensor):
+            coeffs = etd_coefficients(linear, self.h, contour_points)
+            self._real = True  # the eigenvalues given are real (symmetric stencils)
+            self._coeffs: dict[str, Any] = {k: v.real for k, v in coeffs.items()}
+            self._differentiable = True
+            return
+        self._differentiable = False
+        lam = linear.symbol(self.n)[: self.n // 2 + 1] if isinstance(linear, Stencil) else np.asarray(linear)
+        self._coeffs = etd_coefficients(lam, self.h, contour_points)
+        self._real = bool(np.allclose(np.imag(lam), 0.0))  # symmetric stencils: real coefficients
         if self._real:
             self._coeffs = {k: v.real.copy() for k, v in self._coeffs.items()}
-        self._cache: dict[tuple[torch.dtype, torch.device], dict[str, torch.Tensor]] = {}
 
     def _torch_coeffs(self, u: torch.Tensor) -> dict[str, torch.Tensor]:
+        if self._differentiable:
+            return {k: v.to(device=u.device, dtype=u.dtype) for k, v in self._coeffs.items()}
         key = (u.dtype, u.device)
         if key not in self._cache:
             dtype = u.dtype if self._real else (torch.complex128 if u.dtype == torch.float64 else torch.complex64)

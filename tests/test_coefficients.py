@@ -1,0 +1,109 @@
+"""Physical coefficients: environments built with coefficients the paper does not use, and priors that differ."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import pimbrl  # noqa: F401 - registers the environments
+from pimbrl.physics import Burgers, KuramotoSivashinsky
+from pimbrl.physics.pde import ETDRK4, SemilinearPDE
+
+PDES = (Burgers, KuramotoSivashinsky)
+
+
+@pytest.mark.parametrize("cls", PDES)
+def test_operators_at_own_coefficients_equal_the_simulator_parts(cls: type[SemilinearPDE]) -> None:
+    physics = cls().with_coefficients(damping=0.05, convection=1.2, actuator_width=0.9 * cls().actuator_width)
+    lam, nonlinear, shapes = physics.operators({})
+    symbol = physics.linear.symbol(physics.n)[: physics.n // 2 + 1].real
+    np.testing.assert_allclose(lam, symbol, rtol=1e-12, atol=1e-9 * np.abs(symbol).max())
+    assert nonlinear == physics.nonlinear_coef
+    np.testing.assert_allclose(shapes, physics.actuator_shapes, rtol=1e-14)
+    tensors = {k: torch.tensor(v, dtype=torch.float64) for k, v in physics.coefficient_values().items()}
+    lam_t, nonlinear_t, shapes_t = physics.operators(tensors)
+    np.testing.assert_allclose(lam_t.numpy(), lam, rtol=1e-12, atol=1e-9 * np.abs(symbol).max())
+    assert float(nonlinear_t) == pytest.approx(nonlinear, rel=1e-14)
+    np.testing.assert_allclose(shapes_t.numpy(), shapes, rtol=1e-12)
+
+
+def test_operators_are_differentiable_in_the_coefficients() -> None:
+    physics = Burgers()
+    nu = torch.tensor(0.01, dtype=torch.float64, requires_grad=True)
+    lam, _, _ = physics.operators({"nu": nu})
+    lam.sum().backward()
+    d2 = physics.operators({"nu": 1.0, "damping": 0.0})[0]
+    assert nu.grad is not None
+    assert float(nu.grad) == pytest.approx(float(d2.sum()), rel=1e-12)
+
+
+def test_differentiable_etd_step_equals_the_fixed_one_and_has_gradients() -> None:
+    physics = KuramotoSivashinsky()
+    u = torch.as_tensor(np.random.default_rng(0).normal(size=(3, physics.n)))
+    fixed = physics.etdrk4(5)
+    coef = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
+    lam, nonlinear, _ = physics.operators({"hyper_diffusion": coef})
+    learned = ETDRK4(lam, physics.n, physics.control_dt / 5)
+    out_fixed = fixed.step(u, lambda v: physics.nonlinear(v, 0.0))
+    out = learned.step(u, lambda v: nonlinear * physics.upwind(v))
+    np.testing.assert_allclose(out.detach().numpy(), out_fixed.numpy(), rtol=1e-9, atol=1e-12)
+    out.pow(2).sum().backward()
+    assert coef.grad is not None and torch.isfinite(coef.grad) and float(coef.grad) != 0.0
+
+
+@pytest.mark.parametrize(
+    ("cls", "changes"),
+    [
+        (Burgers, {"nu": 0.013, "damping": 0.1, "convection": 0.8, "actuator_width": 0.08}),
+        (KuramotoSivashinsky, {"anti_diffusion": 0.7, "hyper_diffusion": 1.3, "convection": 1.3, "damping": 0.1}),
+    ],
+)
+def test_compiled_simulator_follows_changed_coefficients(cls: type[SemilinearPDE], changes: dict[str, float]) -> None:
+    default = cls()
+    physics = default.with_coefficients(**changes)
+    assert physics.coefficient_values() == {**default.coefficient_values(), **changes}
+    rng = np.random.default_rng(1)
+    u = 0.3 + 0.1 * rng.normal(size=(2, physics.n)) if cls is Burgers else rng.normal(size=(2, physics.n))
+    a = rng.uniform(physics.action_low, physics.action_high, size=(2, physics.action_dim))
+    fast, _ = physics.advance(u, a, np.zeros(2, dtype=np.int64))
+    np.testing.assert_allclose(fast, physics.step(u, a), rtol=1e-10, atol=1e-12)
+    assert not np.allclose(fast, default.advance(u, a, np.zeros(2, dtype=np.int64))[0], atol=1e-6)
+
+
+def test_damping_removes_energy() -> None:
+    u = np.random.default_rng(2).normal(size=(1, 64))
+    a = np.zeros((1, 4))
+    free = KuramotoSivashinsky().step(u, a)
+    damped = KuramotoSivashinsky(damping=0.5).step(u, a)
+    assert (damped**2).sum() < (free**2).sum()
+
+
+def test_bad_coefficients_are_one_line_errors() -> None:
+    with pytest.raises(ValueError, match=r"no coefficient 'nuu' \(did you mean 'nu'\?\); its coefficients are: nu, "):
+        Burgers().with_coefficients(nuu=0.01)
+    with pytest.raises(ValueError, match="must be a finite number"):
+        Burgers().with_coefficients(nu=float("nan"))
+    with pytest.raises(ValueError, match=r"unstable .* give a smaller dt"):
+        Burgers(nu=0.02)
+    with pytest.raises(ValueError, match="hyper_diffusion must be > 0"):
+        KuramotoSivashinsky(hyper_diffusion=0.0)
+    with pytest.raises(ValueError, match="actuator_width must be > 0"):
+        Burgers(actuator_width=0.0)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "name", "value"), [("pimbrl/Burgers-v0", "nu", 0.013), ("pimbrl/KuramotoSivashinsky-v0", "convection", 1.3)]
+)
+def test_environments_take_coefficients_as_keyword_arguments(env_id: str, name: str, value: float) -> None:
+    env = gym.make(env_id, **{name: value})
+    assert getattr(env.unwrapped.task.physics, name) == value
+    default = gym.make(env_id)
+    obs, _ = env.reset(seed=0)
+    obs0, _ = default.reset(seed=0)
+    np.testing.assert_array_equal(obs, obs0)  # the same initial state, different dynamics
+    action = env.action_space.sample() * 0 + env.action_space.high
+    assert not np.array_equal(env.step(action)[0], default.step(action)[0])
+    with pytest.raises(ValueError, match="no coefficient"):
+        gym.make(env_id, not_a_coefficient=1.0)
