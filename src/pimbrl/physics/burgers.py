@@ -119,7 +119,7 @@ class Burgers(SemilinearPDE):
     def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
         """``lam = nu D2/dx^2 - mu``, ``-convection / (2 dx)`` and the actuator shapes (see the base class)."""
         nu, mu = self._coefficient(values, "nu"), self._coefficient(values, "damping")
-        d2 = BURGERS_D2.symbol(self.n)[: self.n // 2 + 1].real / self.dx**2
+        d2: Any = BURGERS_D2.symbol(self.n)[: self.n // 2 + 1].real / self.dx**2
         tensors = [v for v in values.values() if isinstance(v, torch.Tensor)]
         if tensors:
             d2 = torch.as_tensor(d2, dtype=torch.float64)

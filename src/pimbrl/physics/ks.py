@@ -141,7 +141,7 @@ class KuramotoSivashinsky(SemilinearPDE):
         self._check_stability(2.78)  # classic RK4 on a real negative spectrum
 
     def _shapes(self, width: Any) -> Any:
-        dist = self.x[None, :] - self.actuator_centres[:, None]
+        dist: Any = self.x[None, :] - self.actuator_centres[:, None]
         if self.periodic_actuators:
             dist = (dist + self.length / 2) % self.length - self.length / 2
         xp = xp_of(width)
@@ -152,8 +152,8 @@ class KuramotoSivashinsky(SemilinearPDE):
     def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
         """``lam = -b D4/dx^4 - a D2/dx^2 - mu``, ``-c / (2 dx)`` and the actuator shapes (see the base class)."""
         modes = self.n // 2 + 1
-        d2 = KS_D2.symbol(self.n)[:modes].real / self.dx**2
-        d4 = KS_D4.symbol(self.n)[:modes].real / self.dx**4
+        d2: Any = KS_D2.symbol(self.n)[:modes].real / self.dx**2
+        d4: Any = KS_D4.symbol(self.n)[:modes].real / self.dx**4
         if any(isinstance(v, torch.Tensor) for v in values.values()):
             d2, d4 = torch.as_tensor(d2, dtype=torch.float64), torch.as_tensor(d4, dtype=torch.float64)
         get = functools.partial(self._coefficient, values)
