@@ -36,6 +36,8 @@ __all__ = [
     "from_dict",
     "overrides_from_args",
     "param",
+    "parse_learned",
+    "parse_prior",
     "replace_path",
     "to_dict",
     "typed_value",
@@ -373,3 +375,47 @@ def _replace(cfg: Any, path: str, value: Any) -> Any:
         name = _nested_field(type(cfg), head).name  # type: ignore[union-attr]
         return dataclasses.replace(cfg, **{name: _replace(getattr(cfg, name), rest, value)})
     return dataclasses.replace(cfg, **{head: value})
+
+
+# ------------------------------------------------------------------ physical coefficients
+def _coefficient_number(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ConfigError(f"{what}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ConfigError(f"{what}: must be finite, got {text!r}")
+    return value
+
+
+def parse_prior(spec: str) -> dict[str, float]:
+    """``"nu=0.007,damping=0"`` -> ``{"nu": 0.007, "damping": 0.0}`` (``""``: no change)."""
+    out: dict[str, float] = {}
+    for item in (part.strip() for part in spec.split(",")):
+        if not item:
+            continue
+        name, eq, value = item.partition("=")
+        if not eq or not name.strip():
+            raise ConfigError(f"physics prior {spec!r}: each item is name=value (e.g. nu=0.007), got {item!r}")
+        out[name.strip()] = _coefficient_number(value.strip(), f"physics prior {name.strip()}")
+    return out
+
+
+def parse_learned(spec: str) -> dict[str, tuple[float, float] | None]:
+    """``"nu,damping:0:1"`` -> ``{"nu": None, "damping": (0.0, 1.0)}``: free or ranged coefficients."""
+    out: dict[str, tuple[float, float] | None] = {}
+    for item in (part.strip() for part in spec.split(",")):
+        if not item:
+            continue
+        parts = [p.strip() for p in item.split(":")]
+        if len(parts) == 1:
+            out[parts[0]] = None
+        elif len(parts) == 3:
+            low = _coefficient_number(parts[1], f"learned coefficient {parts[0]} low")
+            high = _coefficient_number(parts[2], f"learned coefficient {parts[0]} high")
+            if not low < high:
+                raise ConfigError(f"learned coefficient {parts[0]}: need low < high, got {low} and {high}")
+            out[parts[0]] = (low, high)
+        else:
+            raise ConfigError(f"learned coefficients {spec!r}: each item is name or name:low:high, got {item!r}")
+    return out

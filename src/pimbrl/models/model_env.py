@@ -21,6 +21,7 @@ import torch
 
 from ..buffers import Transitions
 from ..envs import Task
+from ..physics import Physics
 from ..spaces import ActionAdapter
 from .networks import TransitionModel
 
@@ -41,6 +42,8 @@ class ModelEnv:
         use_path: rewards that integrate over a control step (KS) use the model's intermediate states;
             ``False``: the step's two endpoints only, the same rule for a model whose intermediate states
             were never trained (data-only) as for one whose were (physics-informed).
+        physics: the physics whose reward, termination and divergence bound judge imagined steps (default:
+            the task's; a run with a physics prior gives the prior, since it does not know the true system).
     """
 
     def __init__(
@@ -50,10 +53,11 @@ class ModelEnv:
         adapter: ActionAdapter,
         rng: np.random.Generator | None = None,
         use_path: bool = True,
+        physics: Physics | None = None,
     ) -> None:
         self.model = model
         self.task = task
-        self.physics = task.physics
+        self.physics = task.physics if physics is None else physics
         self.adapter = adapter
         self.rng = rng  # samples stochastic action mappings (Discrete(2)), as in the real environment
         self.use_path = use_path

@@ -17,6 +17,10 @@ Units of the loss (``units``):
 The loss needs no label, so it can be applied to any state-action pair, including states the model
 itself generated (see :mod:`pimbrl.models.state_sources`).
 
+With ``learned`` coefficients (PDEs, ``"etd"``; :mod:`pimbrl.models.coefficients`) the coarse step is built
+from the equation's parts at the coefficients' current values (:meth:`SemilinearPDE.operators`); the
+physics loss uses them without moving them, :meth:`PhysicsResidual.coefficient_loss` fits them to labels.
+
 Schemes for ``Phi_h``:
 
 * ``"etd"`` (PDEs, default): one ETDRK4 step of size ``h`` with the linear stencil treated exactly through
@@ -31,12 +35,15 @@ Schemes for ``Phi_h``:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Literal
 
 import torch
 
 from ..physics import Physics
+from ..physics.base import superpose
 from ..physics.pde import ETDRK4, SemilinearPDE
+from .coefficients import LearnedCoefficients
 
 __all__ = ["UNITS", "PhysicsResidual", "Scheme"]
 
@@ -53,9 +60,18 @@ class PhysicsResidual:
         n_intermediate: ``N``, the number of states the model emits per control step.
         scheme: ``"etd"`` or ``"solver"`` (see the module docstring).
         units: ``"substep"`` or ``"step"``: the units of the loss (see the module docstring).
+        learned: coefficients of ``physics`` to learn (name -> ``None`` or ``(low, high)``; PDEs and the
+            ``"etd"`` scheme only); ``physics`` holds their starting values (the prior).
     """
 
-    def __init__(self, physics: Physics, n_intermediate: int, scheme: Scheme = "etd", units: str = "substep") -> None:
+    def __init__(
+        self,
+        physics: Physics,
+        n_intermediate: int,
+        scheme: Scheme = "etd",
+        units: str = "substep",
+        learned: Mapping[str, tuple[float, float] | None] | None = None,
+    ) -> None:
         if n_intermediate < 1:
             raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
         if units not in UNITS:
@@ -83,9 +99,28 @@ class PhysicsResidual:
         self._etd: tuple[SemilinearPDE, ETDRK4] | None = (
             (pde, pde.etdrk4(self.n)) if (pde is not None and scheme == "etd") else None
         )
+        #: the trainable coefficients (``None``: the prior's values, fixed)
+        self.coefficients: LearnedCoefficients | None = None
+        if learned:
+            if self._etd is None:
+                raise ValueError("learned coefficients need the etd residual (--dyna.residual etd), not the solver's")
+            self.coefficients = LearnedCoefficients(physics, learned)
 
-    def coarse_step(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``."""
+    def coarse_step(self, u: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
+        """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``.
+
+        With learned coefficients, ``fit=True`` keeps the gradient to them (for :meth:`coefficient_loss`).
+        """
+        if self._etd is not None and self.coefficients is not None:
+            pde = self._etd[0]
+            values = self.coefficients.values()
+            if not fit:
+                values = {k: v.detach() for k, v in values.items()}
+            lam, nonlinear_coef, shapes = pde.operators(values)
+            step = ETDRK4(lam, pde.n, self.h)
+            f = superpose(a, torch.as_tensor(shapes, dtype=u.dtype))  # keeps the gradient of a learned width
+            coef = torch.as_tensor(nonlinear_coef, dtype=u.dtype)
+            return step.step(u, lambda v: coef * pde.upwind(v) + f)
         if self._etd is not None:
             pde, etd = self._etd
             f = pde.forcing(a)
@@ -108,11 +143,21 @@ class PhysicsResidual:
         loss = self.defects(u0, path, a).pow(2).mean()
         return loss * self.n**2 if self.units == "step" else loss
 
-    def rollout(self, u0: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    def rollout(self, u0: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
         """The coarse scheme's own path ``(B, N, state_dim)`` from ``u0``: the states on which its defects vanish."""
         states: list[torch.Tensor] = []
         u = u0
         for _ in range(self.n):
-            u = self.coarse_step(u, a)
+            u = self.coarse_step(u, a, fit=fit)
             states.append(u)
         return torch.stack(states, dim=1)
+
+    def coefficient_loss(self, u0: torch.Tensor, a: torch.Tensor, u1: torch.Tensor) -> torch.Tensor:
+        """Next-state error of the equation with the learned coefficients on labelled transitions (float64).
+
+        ``mean((Phi_h^N(u0, a) - u1)^2)``: differentiable in the coefficients only (the inverse problem).
+        """
+        if self.coefficients is None:
+            raise ValueError("this residual learns no coefficient")
+        pred = self.rollout(u0.double(), a.double(), fit=True)[:, -1]
+        return self.physics.state_difference(pred, u1.double()).pow(2).mean()

@@ -63,6 +63,8 @@ class ModelTrainer:
         lr: Adam learning rate.
         weight_data, weight_physics: ``w_D`` and ``w_E``.
         grad_clip: maximal gradient norm (``None``: no clipping).
+        coefficient_lr: Adam learning rate of the residual's learned coefficients, if it has any (they are
+            fitted to every labelled batch by :meth:`PhysicsResidual.coefficient_loss`).
     """
 
     def __init__(
@@ -73,6 +75,7 @@ class ModelTrainer:
         weight_data: float = 1.0,
         weight_physics: float = 1.0,
         grad_clip: float | None = 10.0,
+        coefficient_lr: float = 1e-2,
     ) -> None:
         self.model = model
         self.residual = residual
@@ -80,6 +83,10 @@ class ModelTrainer:
         self.weight_physics = float(weight_physics)
         self.grad_clip = grad_clip
         self.optimizer = torch.optim.Adam(model.parameters(), lr=lr, fused=True)
+        self.coefficients = residual.coefficients if residual is not None else None
+        self.coefficient_optimizer = (
+            torch.optim.Adam(self.coefficients.parameters(), lr=coefficient_lr) if self.coefficients is not None else None
+        )
         self.steps = 0
 
     def ensure_normalization(self, data: TransitionData) -> None:
@@ -118,8 +125,23 @@ class ModelTrainer:
         if self.grad_clip is not None:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.grad_clip)
         self.optimizer.step()
+        if labelled is not None and self.coefficient_optimizer is not None:
+            metrics["model/coefficient_loss"] = self._fit_coefficients(labelled)
         self.steps += 1
         return metrics
+
+    def _fit_coefficients(self, labelled: TransitionData) -> float:
+        """One Adam step of the learned coefficients on a labelled batch (the inverse problem)."""
+        assert self.residual is not None
+        assert self.coefficient_optimizer is not None
+        assert labelled.next_state is not None
+        loss = self.residual.coefficient_loss(labelled.state, labelled.action, labelled.next_state)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"the coefficient loss became {float(loss)}; lower --dyna.coefficient-lr")
+        self.coefficient_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.coefficient_optimizer.step()
+        return float(loss.detach())
 
     def fit(
         self,
@@ -168,11 +190,18 @@ class ModelTrainer:
         return float(self.per_transition_mse(data).mean()) if len(data) else float("inf")
 
     def state_dict(self) -> dict:
-        """Model and optimiser state and the step count, for checkpoints."""
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "steps": self.steps}
+        """Model and optimiser state, learned coefficients (if any) and the step count, for checkpoints."""
+        state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "steps": self.steps}
+        if self.coefficients is not None and self.coefficient_optimizer is not None:
+            state["coefficients"] = self.coefficients.state_dict()
+            state["coefficient_optimizer"] = self.coefficient_optimizer.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` saved."""
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
+        if self.coefficients is not None and self.coefficient_optimizer is not None:
+            self.coefficients.load_state_dict(state["coefficients"])
+            self.coefficient_optimizer.load_state_dict(state["coefficient_optimizer"])
         self.steps = int(state["steps"])

@@ -54,7 +54,7 @@ def xp_of(x: Any) -> Any:
     return torch if isinstance(x, torch.Tensor) else np
 
 
-def superpose(a: Array, shapes: np.ndarray) -> Array:
+def superpose(a: Array, shapes: np.ndarray | torch.Tensor) -> Array:
     """Forcing field ``sum_i a[..., i] * shapes[i]`` of actuator amplitudes ``a`` and shape functions.
 
     Written as an explicit sum rather than a matmul so that its rounding does not depend on the batch

@@ -38,6 +38,8 @@ from ..config import (
     non_negative,
     one_of,
     param,
+    parse_learned,
+    parse_prior,
     positive,
     typed_value,
     validate,
@@ -132,6 +134,18 @@ class DynaConfig:
         "normalisation from the equation), so it can be checked and used before it has labels",
         [non_negative(), at_most(MAX_STEPS)],
     )
+    physics_prior: str = param(
+        "",
+        "mbrl and pimbrl: physical coefficients of the model's physics that differ from the environment's, "
+        "name=value comma-separated (e.g. nu=0.007): a prior that is wrong (docs/partial-physics.md); empty: "
+        "the environment's own",
+    )
+    learn_coefficients: str = param(
+        "",
+        "pimbrl, PDEs: coefficients of the physics loss fitted to the labelled transitions, comma-separated, "
+        "each name or name:low:high (e.g. nu or damping:0:1), starting from the prior's values",
+    )
+    coefficient_lr: float = param(1e-2, "pimbrl: Adam learning rate of the learned coefficients", [positive(), at_most(MAX_LR)])
     reward_quadrature: str = param(
         "path",
         "PDEs: imagined rewards from the model's intermediate states (path) or from the step's two endpoints "
@@ -259,13 +273,39 @@ TD3_ONLY = ("policy_delay", "target_smoothing", "target_noise", "noise_clip")  #
 NOISE_EXPLORATION = ("exploration_noise", "preactivation_penalty")  # TD3, DDPG; SAC samples its stochastic policy
 #: dyna fields that only the physics loss reads (pimbrl) and only the PDE models read. start_physics_after
 #: is read by pimbrl only too, but the shared smoke settings of the tests give it to mbrl runs: not checked
-PIMBRL_ONLY = ("physics_weight", "residual", "start_physics_after", "physics_sources", "residual_units", "physics_start")
-PDE_ONLY = ("n_intermediate", "residual", "model", "reward_quadrature")
+PIMBRL_ONLY = (
+    "physics_weight",
+    "residual",
+    "start_physics_after",
+    "physics_sources",
+    "residual_units",
+    "physics_start",
+    "learn_coefficients",
+    "coefficient_lr",
+)
+PDE_ONLY = ("n_intermediate", "residual", "model", "reward_quadrature", "learn_coefficients", "coefficient_lr")
 
 
 def _flag(path: str) -> str:
     head, _, name = path.rpartition(".")
     return f"--{head + '.' if head else ''}{name.replace('_', '-')}"
+
+
+def _task_class(env: str) -> Any:
+    """The task class of a pimbrl environment id (``None`` for any other Gymnasium id)."""
+    import gymnasium as gym
+
+    try:
+        entry = gym.spec(env).entry_point
+    except gym.error.Error:
+        return None
+    if isinstance(entry, str):
+        module, _, name = entry.partition(":")
+        try:
+            entry = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError):
+            return None
+    return getattr(entry, "task_class", None)
 
 
 @functools.cache
@@ -275,24 +315,10 @@ def is_pde_env(env: str) -> bool:
     That is a :class:`~pimbrl.physics.pde.SemilinearPDE` (Burgers, Kuramoto-Sivashinsky); ``False`` for
     the ODE systems and for any other Gymnasium id.
     """
-    import gymnasium as gym
-
     from ..physics.pde import SemilinearPDE
 
-    try:
-        entry = gym.spec(env).entry_point
-    except gym.error.Error:
-        return False
-    if isinstance(entry, str):
-        module, _, name = entry.partition(":")
-        try:
-            entry = getattr(importlib.import_module(module), name)
-        except (ImportError, AttributeError):
-            return False
-    task_class = getattr(entry, "task_class", None)
-    if task_class is None:
-        return False
-    return isinstance(task_class().physics, SemilinearPDE)  # a task's physics is built without simulating
+    task_class = _task_class(env)
+    return task_class is not None and isinstance(task_class().physics, SemilinearPDE)  # built without simulating
 
 
 def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | None:
@@ -482,6 +508,33 @@ def _check_runnable(cfg: TrainConfig) -> None:
         check_tensorboard()
     if cfg.method == "pimbrl":
         check_physics_sources(cfg.env, cfg.dyna.physics_sources)
+    if cfg.method in MODEL_BASED:
+        check_coefficients(cfg)
+
+
+def physics_coefficient_names(env: str) -> tuple[str, ...]:
+    """The physical coefficients of a pimbrl environment's physics (``()`` for any other Gymnasium id)."""
+    task_class = _task_class(env)
+    return () if task_class is None else tuple(task_class().physics.coefficients)
+
+
+def check_coefficients(cfg: TrainConfig) -> None:
+    """A clear :class:`ConfigError` for a ``dyna.physics_prior`` or ``dyna.learn_coefficients`` that cannot work."""
+    d = cfg.dyna
+    prior = parse_prior(d.physics_prior)
+    learned = parse_learned(d.learn_coefficients) if cfg.method == "pimbrl" else {}
+    if not prior and not learned:
+        return
+    names = physics_coefficient_names(cfg.env)
+    for field, given in (("dyna.physics_prior", prior), ("dyna.learn_coefficients", learned)):
+        bad = [name for name in given if name not in names]
+        if bad:
+            raise ConfigError(
+                f"{field}: {cfg.env} has no coefficient {bad[0]!r}{did_you_mean(bad[0], names)}; "
+                f"its coefficients are: {', '.join(names) or 'none'}"
+            )
+    if learned and d.residual != "etd":
+        raise ConfigError("dyna.learn_coefficients needs the etd residual (--dyna.residual etd), not the solver's")
 
 
 #: physics-loss sources by kind of system (what :func:`pimbrl.models.state_sources.available_sources`

@@ -35,6 +35,7 @@ import torch
 
 from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
+from ..config import parse_learned, parse_prior
 from ..envs import Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
@@ -79,22 +80,33 @@ class DynaModel:
             raise ValueError(f"DynaModel serves mbrl or pimbrl, not {cfg.method!r}")
         self.cfg = cfg
         self.task = task
-        self.physics = task.physics
+        d = cfg.dyna
+        # what the run knows of the system: the environment's physics, with the coefficients of the prior
+        self.physics = task.physics.with_coefficients(**parse_prior(d.physics_prior))
         self.adapter = adapter
         self.streams = streams
-        d = cfg.dyna
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(streams.integer_seed("model_init"))
             self.model = make_model(self.physics, n_intermediate=d.n_intermediate, kind=d.model)
         scheme: Scheme = "solver" if d.residual == "solver" else "etd"
         residual = (
-            PhysicsResidual(self.physics, self.model.n_intermediate, scheme, d.residual_units) if cfg.method == "pimbrl" else None
+            PhysicsResidual(
+                self.physics, self.model.n_intermediate, scheme, d.residual_units, learned=parse_learned(d.learn_coefficients)
+            )
+            if cfg.method == "pimbrl"
+            else None
         )
         self.sources = parse_sources(d.physics_sources, self.physics) if residual is not None else ()
-        self.trainer = ModelTrainer(self.model, residual, lr=d.model_lr, weight_physics=d.physics_weight)
+        self.trainer = ModelTrainer(
+            self.model, residual, lr=d.model_lr, weight_physics=d.physics_weight, coefficient_lr=d.coefficient_lr
+        )
+        #: (step, coefficient values, coefficient loss) after every model phase that fitted them
+        self.coefficient_history: list[dict[str, float]] = []
         self.extras = physics_extras(self.physics.state_dim, self.physics.action_dim)
         self.imagined = ReplayBuffer(d.imagined_buffer_size, obs_dim, adapter.dim, extras=self.extras)
-        self.model_env = ModelEnv(self.model, task, adapter, streams.imagination, use_path=d.reward_quadrature == "path")
+        self.model_env = ModelEnv(
+            self.model, task, adapter, streams.imagination, use_path=d.reward_quadrature == "path", physics=self.physics
+        )
         self.in_use = False
         self.finetuning = False
         self.val_mse = float("inf")
@@ -151,6 +163,11 @@ class DynaModel:
                     unlabelled,
                     unlabelled_rng=self.streams.physics_states,
                 )
+                coefficients = self.trainer.coefficients
+                if coefficients is not None and labelled is not None:
+                    self.coefficient_history.append(
+                        {"step": t, **coefficients.current(), "loss": self.metrics["model/coefficient_loss"]}
+                    )
             with timed("model_check"):
                 recent = BufferView(real, holdout_idx[-d.validation_size :]).all()  # oldest first: the most recent
                 self.val_mse = self.trainer.validation_mse(recent)
@@ -239,6 +256,8 @@ class DynaModel:
         ]
         if self.trainer.residual is not None:
             names.append("model/physics_loss")
+        if self.trainer.coefficients is not None:
+            names += ["model/coefficient_loss", *(f"coef/{name}" for name in self.trainer.coefficients.names)]
         return names
 
     def metric_row(self) -> dict[str, Any]:
@@ -252,6 +271,23 @@ class DynaModel:
             "model/finetuning": int(self.finetuning),
             "imagined_buffer": len(self.imagined),
             "imagined_total": self.imagined_total,
+            "model/coefficient_loss": self.metrics.get("model/coefficient_loss"),
+            **{f"coef/{k}": v for k, v in self.learned_coefficients().items()},
+        }
+
+    def learned_coefficients(self) -> dict[str, float]:
+        """The learned coefficients' current values (empty where none is learned)."""
+        return {} if self.trainer.coefficients is None else self.trainer.coefficients.current()
+
+    def coefficients_report(self) -> dict[str, Any]:
+        """The content of ``coefficients.json``: the prior, the current values and their history per phase."""
+        learned = self.trainer.coefficients
+        return {
+            "environment": self.task.physics.coefficient_values(),
+            "prior": self.physics.coefficient_values(),
+            "learned": {} if learned is None else {n: list(r) if r else None for n, r in learned.ranges.items()},
+            "current": self.learned_coefficients(),
+            "history": self.coefficient_history,
         }
 
     def state_dict(self) -> dict[str, Any]:
@@ -265,6 +301,7 @@ class DynaModel:
             "baseline_mse": self.baseline_mse,
             "metrics": dict(self.metrics),
             "imagined_total": self.imagined_total,
+            "coefficient_history": list(self.coefficient_history),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -277,6 +314,7 @@ class DynaModel:
         self.baseline_mse = float(state["baseline_mse"])
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
+        self.coefficient_history = list(state.get("coefficient_history", []))
 
 
 def no_change_mse(physics: Physics, data: TransitionData) -> float:

@@ -201,6 +201,13 @@ class Run:
         return row
 
 
+def _log_metrics(run: Run) -> None:
+    """A row of ``metrics.csv``; with learned coefficients, ``coefficients.json`` brought up to date too."""
+    run.logger.metrics(run.t, run.counters())
+    if run.model is not None and run.model.trainer.coefficients is not None:
+        run.run_dir.write_json("coefficients.json", run.model.coefficients_report())
+
+
 def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
     """Train ``run`` to ``total_steps`` real steps (the paper's Algorithm 1; MFRL when ``run.model`` is None).
 
@@ -249,7 +256,7 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
                 _evaluate(run)
                 event("evaluate", run)
             if run.t % cfg.log_every == 0:
-                log.metrics(run.t, run.counters())
+                _log_metrics(run)
             # 4. episode end: log it, checkpoint when due, reset
             if step.done:
                 end = run.collector.end_episode()
@@ -262,7 +269,7 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
         if run.t % cfg.eval_every != 0 or log.last_eval is None:
             _evaluate(run)
         if run.t % cfg.log_every != 0:
-            log.metrics(run.t, run.counters())
+            _log_metrics(run)
         run.save_checkpoint()
         return _finish(run)
     finally:

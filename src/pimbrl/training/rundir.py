@@ -355,6 +355,10 @@ class RunDirectory:
         """Write ``config.json`` atomically."""
         atomic_write_bytes(self.config_path, (json.dumps(payload, indent=2, sort_keys=False) + "\n").encode())
 
+    def write_json(self, name: str, payload: dict[str, Any]) -> None:
+        """Write ``name`` (a JSON file of the run, e.g. ``coefficients.json``) atomically."""
+        atomic_write_bytes(self.path / name, (json.dumps(payload, indent=2) + "\n").encode())
+
     def read_config(self) -> dict[str, Any]:
         """The contents of ``config.json``.
 
