@@ -16,14 +16,21 @@ __all__ = ["CartPoleEnv", "CartPoleTask", "CartPoleVectorEnv"]
 
 
 class CartPoleTask(Task):
-    """Cart-Pole task: Discrete(2) actions (0: push left, 1: push right), 200 control steps."""
+    """Cart-Pole task: Discrete(2) actions (0: push left, 1: push right), 200 control steps.
+
+    Args:
+        **coefficients: physical coefficients of :class:`pimbrl.physics.CartPole` that differ from Gymnasium's
+            (``gravity`` = 9.8, ``masscart`` = 1, ``masspole`` = 0.1, ``length`` = 0.5 (half the pole),
+            ``cart_friction`` = 0, ``pole_friction`` = 0), e.g. ``masspole=0.15`` or ``pole_friction=0.002``:
+            a system whose physics a prior may get wrong.
+    """
 
     max_episode_steps = 200
     render_fps = 50  # a control step is 0.02 time units
     physics: CartPole
 
-    def __init__(self) -> None:
-        self.physics = CartPole()
+    def __init__(self, **coefficients: float) -> None:
+        self.physics = CartPole().with_coefficients(**coefficients)
         p = self.physics
         high = np.array([p.x_threshold * 2, np.inf, p.theta_threshold_radians * 2, np.inf], dtype=np.float32)
         self.observation_space = spaces.Box(-high, high, dtype=np.float32)
@@ -71,18 +78,21 @@ class CartPoleTask(Task):
 _DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPole-v0 settings).
 
     ## Description
-    A pole is hinged on a cart that moves on a frictionless track; pushing the cart left or right
-    keeps the pole upright.
+    A pole is hinged on a cart that moves on a track (frictionless unless asked otherwise); pushing the
+    cart left or right keeps the pole upright.
 
     ## Governing equation
     Gymnasium's cart-pole equations (g = 9.8, cart mass 1.0, pole mass 0.1, half-length 0.5):
     ``temp = (F + m_p l theta_dot^2 sin theta) / (m_c + m_p)``,
     ``theta_acc = (g sin theta - cos theta temp) / (l (4/3 - m_p cos^2 theta / (m_c + m_p)))``,
     ``x_acc = temp - m_p l theta_acc cos theta / (m_c + m_p)``. (The paper's equation (3.1) has typos.)
+    With ``cart_friction = mu_c`` and ``pole_friction = mu_p`` (both 0 by default), Barto, Sutton &
+    Anderson's (1983) frictional form: ``- mu_c sgn(x_dot)`` is added to the numerator of ``temp`` and
+    ``- mu_p theta_dot / (m_p l)`` to that of ``theta_acc`` (see :mod:`pimbrl.physics.cartpole`).
 
     ## Discretisation
-    Explicit Euler, ``tau = 0.02``, in Gymnasium's operation order: trajectories equal Gymnasium's
-    ``CartPole`` bit for bit from the same state and actions.
+    Explicit Euler, ``tau = 0.02``, in Gymnasium's operation order: with the default coefficients,
+    trajectories equal Gymnasium's ``CartPole`` bit for bit from the same state and actions.
 
     ## Action Space
     ``Discrete(2)``: 0 pushes the cart left (force -10), 1 pushes it right (+10).
@@ -104,7 +114,10 @@ _DOC = """Cart-Pole balancing (Barto, Sutton & Anderson 1983; the paper's CartPo
     ``render_mode="rgb_array"``: a 300 x 600 sketch of cart and pole, 50 frames per second.
 
     ## Arguments
-    None.
+    The physical coefficients ``gravity`` (9.8), ``masscart`` (1.0), ``masspole`` (0.1), ``length`` (0.5, half
+    the pole), ``cart_friction`` (0: a Coulomb friction force ``-mu_c sgn(x_dot)`` on the cart) and
+    ``pole_friction`` (0: a friction torque ``-mu_p theta_dot`` at the pivot), e.g.
+    ``gym.make("pimbrl/CartPole-v0", masspole=0.15)``. Masses and length must be > 0, frictions >= 0.
 
     ## Version History
     * v0: the paper's CartPole-v0 (200-step limit).

@@ -25,6 +25,9 @@ class PendulumTask(Task):
             through the bottom: TD3 then swings up from only part of the initial states (measured: mean
             test return stuck near -970, bimodal -1522 / -0.1, over 15,000 steps), like the paper's MFRL
             curve (below -800).
+        **coefficients: physical coefficients of :class:`pimbrl.physics.Pendulum` that differ from Gymnasium's
+            (``g`` = 10, ``m`` = 1, ``l`` = 1, ``damping`` = 0), e.g. ``m=1.3`` or ``damping=0.1``: a system
+            whose physics a prior may get wrong.
     """
 
     max_episode_steps = 200
@@ -32,10 +35,10 @@ class PendulumTask(Task):
     physics: Pendulum
     action_space: spaces.Box
 
-    def __init__(self, observation: Literal["theta", "cos_sin"] = "cos_sin") -> None:
+    def __init__(self, observation: Literal["theta", "cos_sin"] = "cos_sin", **coefficients: float) -> None:
         if observation not in ("theta", "cos_sin"):
             raise ValueError(f"observation must be 'theta' or 'cos_sin', got {observation!r}")
-        self.physics = Pendulum()
+        self.physics = Pendulum().with_coefficients(**coefficients)
         self.observation_mode = observation
         s = np.float32(self.physics.max_speed)
         high = np.array([np.pi, s], dtype=np.float32) if observation == "theta" else np.array([1.0, 1.0, s], dtype=np.float32)
@@ -81,12 +84,14 @@ _DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
     it upright with little effort.
 
     ## Governing equation
-    ``theta_ddot = 3 g / (2 l) sin(theta) + 3 / (m l^2) T`` with ``g = 10``, ``m = l = 1``;
-    ``theta = 0`` is upright.
+    ``theta_ddot = 3 g / (2 l) sin(theta) + 3 / (m l^2) (T - damping theta_dot)`` with ``g = 10``,
+    ``m = l = 1`` and ``damping = 0`` (a uniform rod; ``damping`` is a viscous friction torque at the
+    pivot); ``theta = 0`` is upright.
 
     ## Discretisation
     Semi-implicit Euler, ``dt = 0.05``, angular speed clipped to ``[-8, 8]``, in Gymnasium's
-    operation order: trajectories equal Gymnasium's ``Pendulum-v1`` bit for bit.
+    operation order: with the default coefficients, trajectories equal Gymnasium's ``Pendulum-v1`` bit for
+    bit.
 
     ## Action Space
     ``Box(-2, 2, (1,), float32)``: the torque; values outside are clipped.
@@ -109,7 +114,9 @@ _DOC = """Pendulum swing-up (Gymnasium's Pendulum; the paper's section 3.1.2).
     ``render_mode="rgb_array"``: a 400 x 400 sketch of the rod, 20 frames per second.
 
     ## Arguments
-    ``observation``: ``"cos_sin"`` (default) or ``"theta"``.
+    ``observation``: ``"cos_sin"`` (default) or ``"theta"``; the physical coefficients ``g`` (10), ``m`` (1),
+    ``l`` (1) and ``damping`` (0: a friction torque ``-damping theta_dot`` at the pivot), e.g.
+    ``gym.make("pimbrl/Pendulum-v0", m=1.3)``. Masses and lengths must be > 0, ``damping`` >= 0.
 
     ## Version History
     * v0: initial version.

@@ -26,7 +26,7 @@ import torch
 
 Array = TypeVar("Array", np.ndarray, torch.Tensor)
 
-__all__ = ["Array", "Physics", "records_arguments", "superpose", "xp_of"]
+__all__ = ["Array", "Physics", "check_coefficient", "records_arguments", "superpose", "xp_of"]
 
 PhysicsT = TypeVar("PhysicsT", bound="Physics")
 InitT = TypeVar("InitT", bound=Callable[..., None])
@@ -47,6 +47,19 @@ def records_arguments(init: InitT) -> InitT:
         self._arguments = {k: v for k, v in bound.arguments.items() if k != "self"}
 
     return wrapper  # type: ignore[return-value]
+
+
+def check_coefficient(system: str, name: str, value: float, *, positive: bool = False, nonnegative: bool = False) -> float:
+    """``value`` as a float if it is finite (and ``> 0`` where ``positive``, ``>= 0`` where ``nonnegative``).
+
+    Raises:
+        ValueError: a one-line message naming ``system`` and the argument ``name``.
+    """
+    v = float(value)
+    if not math.isfinite(v) or (positive and not v > 0) or (nonnegative and not v >= 0):
+        need = " > 0" if positive else " >= 0" if nonnegative else ""
+        raise ValueError(f"{system}: {name} must be a finite number{need}, got {value!r}")
+    return v
 
 
 def xp_of(x: Any) -> Any:

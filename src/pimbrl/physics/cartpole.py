@@ -1,8 +1,25 @@
-"""Cart-Pole: Gymnasium's classic cart-pole dynamics (Barto, Sutton & Anderson 1983).
+"""Cart-Pole: Gymnasium's classic cart-pole dynamics (Barto, Sutton & Anderson 1983), optionally with friction.
 
 The equations are written once here in array-agnostic form (NumPy or torch, batched), with the
 operation order of Gymnasium's ``CartPoleEnv`` so that trajectories match it bit for bit. The paper's
 equation (3.1) has typos; this is the form Gymnasium (and the authors' environment) integrate.
+
+With friction (``mu_c = cart_friction``, ``mu_p = pole_friction``; both 0 by default, as Gymnasium) these
+are Barto, Sutton & Anderson's (1983, appendix) frictional equations, in Gymnasium's sign convention
+(``theta = 0`` upright, ``g > 0``; ``m = masspole``, ``M = masscart + masspole``, ``l`` the half-length)::
+
+    temp      = (F + m l theta_dot^2 sin(theta) - mu_c sgn(x_dot)) / M
+    theta_acc = (g sin(theta) - cos(theta) temp - mu_p theta_dot / (m l)) / (l (4/3 - m cos^2(theta) / M))
+    x_acc     = temp - m l theta_acc cos(theta) / M
+
+``mu_c sgn(x_dot)`` is a Coulomb friction force of constant magnitude ``mu_c`` (newtons) on the cart,
+``mu_p theta_dot`` a viscous friction torque at the pivot. They follow from the Lagrangian of a uniform
+pole (moment of inertia ``m l^2 / 3`` about its centre) on a cart with these two generalised friction
+forces. Florian (2007, "Correct equations for the dynamics of the cart-pole system") points out that
+physical Coulomb friction scales with the cart's normal force, which varies with the pole's motion; that
+refinement is not modelled: ``mu_c`` is Barto et al.'s constant friction force. At ``x_dot = 0`` the
+cart friction is 0 (no static friction). A friction term that is 0 is not computed at all, so the
+defaults stay Gymnasium's bit for bit.
 """
 
 from __future__ import annotations
@@ -11,7 +28,7 @@ import math
 
 import numpy as np
 
-from .base import Array, Physics, xp_of
+from .base import Array, Physics, check_coefficient, records_arguments, xp_of
 
 __all__ = ["CartPole"]
 
@@ -21,10 +38,32 @@ class CartPole(Physics):
 
     The physical action is the force (``[-force_mag, force_mag]``); the Gymnasium environment applies
     ``+force_mag`` for action 1 and ``-force_mag`` for action 0. Explicit Euler with ``tau = 0.02``.
+
+    Args:
+        gravity: gravitational acceleration (9.8), a finite number.
+        masscart: mass of the cart (1.0), > 0.
+        masspole: mass of the pole (0.1), > 0.
+        length: half the pole's length (0.5), > 0.
+        force_mag: magnitude of the force on the cart (10).
+        tau: explicit Euler step (0.02).
+        x_threshold: the episode ends beyond ``|x| > x_threshold`` (2.4).
+        theta_threshold_radians: the episode ends beyond ``|theta| >`` this (12 degrees).
+        cart_friction: magnitude ``mu_c`` of a Coulomb friction force ``-mu_c sgn(x_dot)`` on the cart
+            (0: none, as Gymnasium), >= 0.
+        pole_friction: coefficient ``mu_p`` of a viscous friction torque ``-mu_p theta_dot`` at the pivot
+            (0: none, as Gymnasium), >= 0.
+
+    The physical coefficients (:attr:`coefficients`) are ``gravity``, ``masscart``, ``masspole``,
+    ``length``, ``cart_friction`` and ``pole_friction``. See the module docstring for the equations.
+
+    Raises:
+        ValueError: for a mass or length ``<= 0``, a friction ``< 0`` or a coefficient that is not finite.
     """
 
     name = "cartpole"
+    coefficients = ("gravity", "masscart", "masspole", "length", "cart_friction", "pole_friction")
 
+    @records_arguments
     def __init__(
         self,
         gravity: float = 9.8,
@@ -35,12 +74,16 @@ class CartPole(Physics):
         tau: float = 0.02,
         x_threshold: float = 2.4,
         theta_threshold_radians: float = 12 * 2 * math.pi / 360,
+        cart_friction: float = 0.0,
+        pole_friction: float = 0.0,
     ) -> None:
-        self.gravity = float(gravity)
-        self.masscart = float(masscart)
-        self.masspole = float(masspole)
+        self.gravity = check_coefficient("CartPole", "gravity", gravity)
+        self.masscart = check_coefficient("CartPole", "masscart", masscart, positive=True)
+        self.masspole = check_coefficient("CartPole", "masspole", masspole, positive=True)
+        self.length = check_coefficient("CartPole", "length", length, positive=True)  # half the pole's length
+        self.cart_friction = check_coefficient("CartPole", "cart_friction", cart_friction, nonnegative=True)
+        self.pole_friction = check_coefficient("CartPole", "pole_friction", pole_friction, nonnegative=True)
         self.total_mass = self.masspole + self.masscart
-        self.length = float(length)  # half the pole's length
         self.polemass_length = self.masspole * self.length
         self.force_mag = float(force_mag)
         self.dt = float(tau)
@@ -53,16 +96,23 @@ class CartPole(Physics):
         self.action_high = np.array([self.force_mag])
 
     def rhs(self, u: Array, a: Array) -> Array:
-        """Gymnasium's cart-pole equations of motion: ``(x_dot, x_acc, theta_dot, theta_acc)``."""
+        """Gymnasium's cart-pole equations of motion, with Barto et al.'s friction terms where nonzero.
+
+        Returns ``(x_dot, x_acc, theta_dot, theta_acc)``.
+        """
         xp = xp_of(u)
         x_dot, theta, theta_dot = u[..., 1], u[..., 2], u[..., 3]
         force = a[..., 0]
         costheta = xp.cos(theta)
         sintheta = xp.sin(theta)
-        temp = (force + self.polemass_length * (theta_dot * theta_dot) * sintheta) / self.total_mass
-        thetaacc = (self.gravity * sintheta - costheta * temp) / (
-            self.length * (4.0 / 3.0 - self.masspole * (costheta * costheta) / self.total_mass)
-        )
+        numerator = force + self.polemass_length * (theta_dot * theta_dot) * sintheta
+        if self.cart_friction != 0.0:  # each friction term is skipped at 0: the defaults stay Gymnasium's
+            numerator = numerator - self.cart_friction * xp.sign(x_dot)
+        temp = numerator / self.total_mass
+        angular = self.gravity * sintheta - costheta * temp
+        if self.pole_friction != 0.0:
+            angular = angular - self.pole_friction * theta_dot / self.polemass_length
+        thetaacc = angular / (self.length * (4.0 / 3.0 - self.masspole * (costheta * costheta) / self.total_mass))
         xacc = temp - self.polemass_length * thetaacc * costheta / self.total_mass
         return xp.stack([x_dot, xacc, theta_dot, thetaacc], -1)
 

@@ -1,17 +1,20 @@
-"""Pendulum: Gymnasium's inverted-pendulum swing-up dynamics.
+"""Pendulum: Gymnasium's inverted-pendulum swing-up dynamics, optionally with viscous friction at the pivot.
 
-    theta_ddot = 3 g / (2 l) sin(theta) + 3 / (m l^2) T,
+    theta_ddot = 3 g / (2 l) sin(theta) + 3 / (m l^2) (T - damping theta_dot),
 
 integrated with semi-implicit Euler (``dt = 0.05``) and the angular speed clipped to ``[-8, 8]``, in the
-operation order of Gymnasium's ``PendulumEnv`` so that trajectories match it bit for bit. ``theta = 0``
-is upright. (The paper writes ``-3g/(2l) sin(theta + pi)``, the same thing.)
+operation order of Gymnasium's ``PendulumEnv`` so that trajectories match it bit for bit (with
+``damping = 0``, the default, the friction term is not computed at all). ``theta = 0`` is upright. (The
+paper writes ``-3g/(2l) sin(theta + pi)``, the same thing.) The rod is uniform, with moment of inertia
+``m l^2 / 3`` about the pivot, so a torque ``tau`` gives ``theta_ddot = 3 tau / (m l^2)``; the friction
+torque is ``-damping theta_dot``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Physics, xp_of
+from .base import Array, Physics, check_coefficient, records_arguments, xp_of
 
 __all__ = ["Pendulum", "wrap_angle"]
 
@@ -26,10 +29,27 @@ class Pendulum(Physics):
 
     The clipping of ``theta_dot`` is part of the discrete dynamics, so the residual of a true step is
     exactly zero even when the speed limit is active.
+
+    Args:
+        g: gravitational acceleration (10, Gymnasium's), a finite number.
+        m: mass of the rod (1), > 0.
+        l: length of the rod (1), > 0.
+        dt: semi-implicit Euler step (0.05).
+        max_speed: the angular speed is clipped to ``[-max_speed, max_speed]`` after every step (8).
+        max_torque: torque bound (2).
+        damping: coefficient of a viscous friction torque ``-damping theta_dot`` at the pivot (0: none, as
+            Gymnasium; a term a physics prior may miss), >= 0.
+
+    The physical coefficients (:attr:`coefficients`) are ``g``, ``m``, ``l`` and ``damping``.
+
+    Raises:
+        ValueError: for ``m <= 0``, ``l <= 0``, ``damping < 0`` or a coefficient that is not finite.
     """
 
     name = "pendulum"
+    coefficients = ("g", "m", "l", "damping")
 
+    @records_arguments
     def __init__(
         self,
         g: float = 10.0,
@@ -38,10 +58,12 @@ class Pendulum(Physics):
         dt: float = 0.05,
         max_speed: float = 8.0,
         max_torque: float = 2.0,
+        damping: float = 0.0,
     ) -> None:
-        self.g = float(g)
-        self.m = float(m)
-        self.l = float(l)
+        self.g = check_coefficient("Pendulum", "g", g)
+        self.m = check_coefficient("Pendulum", "m", m, positive=True)
+        self.l = check_coefficient("Pendulum", "l", l, positive=True)
+        self.damping = check_coefficient("Pendulum", "damping", damping, nonnegative=True)
         self.dt = float(dt)
         self.substeps = 1
         self.max_speed = float(max_speed)
@@ -54,10 +76,16 @@ class Pendulum(Physics):
         self._torque_coef = 3.0 / (self.m * self.l**2)
 
     def rhs(self, u: Array, a: Array) -> Array:
-        """``(theta_dot, 3 g / (2 l) sin(theta) + 3 / (m l^2) T)``, as in Gymnasium's pendulum."""
+        """``(theta_dot, 3 g / (2 l) sin(theta) + 3 / (m l^2) (T - damping theta_dot))``.
+
+        With ``damping = 0`` this is Gymnasium's expression, evaluated in its order.
+        """
         xp = xp_of(u)
         theta, theta_dot = u[..., 0], u[..., 1]
-        return xp.stack([theta_dot, self._gravity_coef * xp.sin(theta) + self._torque_coef * a[..., 0]], -1)
+        torque = a[..., 0]
+        if self.damping != 0.0:  # skipped at 0, so that the default stays Gymnasium's bit for bit
+            torque = torque - self.damping * theta_dot
+        return xp.stack([theta_dot, self._gravity_coef * xp.sin(theta) + self._torque_coef * torque], -1)
 
     def substep(self, u: Array, a: Array) -> Array:
         """Gymnasium's semi-implicit Euler step: clip the new angular speed, then move the angle with it."""

@@ -381,7 +381,9 @@ def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
     """Raise :class:`ConfigError` for a keyword argument that the environment ``env`` does not take.
 
     The names are read from the signature of the environment's class (of its task, for pimbrl
-    environments); an environment that takes ``**kwargs``, or one that cannot be inspected, is not checked.
+    environments); a pimbrl task's ``**coefficients`` stand for the names of its physics'
+    :attr:`~pimbrl.physics.Physics.coefficients`. Any other environment that takes ``**kwargs``, or one that
+    cannot be inspected, is not checked.
     """
     if not kwargs:
         return
@@ -392,13 +394,18 @@ def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
         if isinstance(entry, str):
             module, _, name = entry.partition(":")
             entry = getattr(importlib.import_module(module), name)
-        target: Any = getattr(entry, "task_class", None) or entry
+        task_class = getattr(entry, "task_class", None)
+        target: Any = task_class or entry
         params = inspect.signature(target).parameters.values()
+        extra: tuple[str, ...] = ()
+        if task_class is not None and any(p.kind is p.VAR_KEYWORD for p in params):
+            extra = tuple(task_class().physics.coefficients)  # a task's physics is built without simulating
     except (gym.error.Error, ImportError, AttributeError, TypeError, ValueError):
         return
-    if any(p.kind is p.VAR_KEYWORD for p in params):
+    if not extra and any(p.kind is p.VAR_KEYWORD for p in params):
         return
     names = [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name != "self"]
+    names += [name for name in extra if name not in names]
     for key in kwargs:
         if key not in names:
             takes = ", ".join(names) if names else "none"
