@@ -33,12 +33,17 @@ from ..physics.pde import SemilinearPDE
 __all__ = ["LearnedCoefficients", "parse_learned", "parse_prior"]
 
 
+#: a prior on the edge of its range starts this fraction of the range inside (the sigmoid never reaches it)
+_EDGE = 1e-3
+
+
 class LearnedCoefficients(torch.nn.Module):
     """Trainable physical coefficients of a PDE's residual, initialised at the prior's values.
 
     A free coefficient is ``prior + scale * theta`` with ``scale = |prior|`` (1 where the prior is 0), so that
     Adam's steps are relative changes whatever the coefficient's units; a ranged one is
-    ``low + (high - low) * sigmoid(theta)``.
+    ``low + (high - low) * sigmoid(theta)``, starting a thousandth of the range inside where the prior is on
+    its edge (a missing damping term: prior 0, range ``0:1``).
 
     Args:
         physics: the prior (its values are the starting point).
@@ -68,12 +73,12 @@ class LearnedCoefficients(torch.nn.Module):
                 raw.append(0.0)
             else:
                 low, high = bounds
-                if not low < value < high:
+                if not low <= value <= high:
                     raise ValueError(
-                        f"learned coefficient {name}: the prior's value {value} must lie strictly inside "
-                        f"its range ({low}, {high}); give the prior a value inside (e.g. --dyna.physics-prior {name}=...)"
+                        f"learned coefficient {name}: the prior's value {value} lies outside its range [{low}, {high}]; "
+                        f"give the prior a value inside (e.g. --dyna.physics-prior {name}=...)"
                     )
-                p = (value - low) / (high - low)
+                p = min(max((value - low) / (high - low), _EDGE), 1 - _EDGE)  # an edge: start just inside
                 raw.append(math.log(p / (1 - p)))
             self.prior[name] = value
         self.theta = torch.nn.Parameter(torch.tensor(raw, dtype=torch.float64))

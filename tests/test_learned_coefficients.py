@@ -1,0 +1,157 @@
+"""A physics prior that can be wrong, and coefficients learned from labelled transitions (the inverse problem)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pimbrl.cli import main
+from pimbrl.config import ConfigError, parse_learned, parse_prior
+from pimbrl.envs import ks_initial_state_pool
+from pimbrl.models import ModelTrainer, PhysicsResidual, make_model
+from pimbrl.models.coefficients import LearnedCoefficients
+from pimbrl.physics import Burgers, KuramotoSivashinsky, Pendulum
+from pimbrl.training import resolve_config
+
+from .test_dyna import DYNA_SMOKE, SMALL_MODEL
+from .test_training import TINY
+
+
+def test_specifications_parse_and_bad_ones_say_what_is_wrong() -> None:
+    assert parse_prior("") == {}
+    assert parse_prior("nu=0.007, damping=0") == {"nu": 0.007, "damping": 0.0}
+    assert parse_learned("nu, damping:0:1") == {"nu": None, "damping": (0.0, 1.0)}
+    with pytest.raises(ConfigError, match="each item is name=value"):
+        parse_prior("nu")
+    with pytest.raises(ConfigError, match="'abc' is not a number"):
+        parse_prior("nu=abc")
+    with pytest.raises(ConfigError, match="need low < high"):
+        parse_learned("nu:1:0")
+    with pytest.raises(ConfigError, match="each item is name or name:low:high"):
+        parse_learned("nu:1")
+
+
+def test_learned_coefficients_start_at_the_prior_and_respect_their_range() -> None:
+    prior = Burgers(nu=0.007)
+    learned = LearnedCoefficients(prior, {"nu": None, "damping": (0.0, 1.0)})
+    with pytest.raises(ValueError, match=r"prior's value 0.0 lies outside its range \[0.1, 1.0\]"):
+        LearnedCoefficients(prior, {"damping": (0.1, 1.0)})  # the prior's damping is 0
+    start = learned.current()
+    assert start["nu"] == pytest.approx(0.007, rel=1e-12)
+    assert start["damping"] == pytest.approx(1e-3, rel=1e-9)  # the prior (0) is the range's edge: just inside
+    with torch.no_grad():
+        learned.theta.fill_(50.0)
+    assert 0.0 < learned.current()["damping"] <= 1.0
+    with pytest.raises(ValueError, match="need a PDE system"):
+        LearnedCoefficients(Pendulum(), {"m": None})
+    with pytest.raises(ValueError, match="has no coefficient 'nuu'"):
+        LearnedCoefficients(prior, {"nuu": None})
+
+
+def test_learned_residual_at_the_true_values_equals_the_fixed_one() -> None:
+    physics = Burgers()
+    fixed = PhysicsResidual(physics, 5)
+    learned = PhysicsResidual(physics, 5, learned={"nu": None, "convection": None})
+    rng = np.random.default_rng(0)
+    u = torch.as_tensor(0.3 + 0.05 * rng.normal(size=(4, physics.n)))
+    a = torch.as_tensor(rng.uniform(physics.action_low, physics.action_high, size=(4, 2)))
+    torch.testing.assert_close(learned.rollout(u, a), fixed.rollout(u, a), rtol=1e-10, atol=1e-12)
+
+
+def test_the_physics_loss_uses_the_coefficients_without_moving_them() -> None:
+    physics = KuramotoSivashinsky()
+    residual = PhysicsResidual(physics, 5, learned={"convection": None})
+    u = torch.as_tensor(ks_initial_state_pool("train").states[:4], dtype=torch.float32)
+    path = (residual.rollout(u.double(), torch.zeros(4, 4, dtype=torch.float64)).float() + 0.01).requires_grad_()
+    residual.loss(u, path, torch.zeros(4, 4)).backward()
+    assert residual.coefficients is not None
+    assert path.grad is not None and float(path.grad.abs().sum()) > 0  # the loss pulls the model's states
+    assert residual.coefficients.theta.grad is None  # but not the coefficients
+
+
+@pytest.mark.parametrize(("true", "prior"), [(1.3, 1.0), (0.7, 1.0)])
+def test_a_wrong_convection_coefficient_is_identified_from_labelled_transitions(true: float, prior: float) -> None:
+    """KS with the convection term 30 % off: the inverse problem recovers it within 1 %."""
+    system = KuramotoSivashinsky(convection=true)
+    rng = np.random.default_rng(0)
+    u = ks_initial_state_pool("train").states[rng.integers(0, 500, 256)]
+    a = rng.uniform(-0.5, 0.5, size=(256, 4))
+    u1, _ = system.advance(u, a, np.zeros(256, dtype=np.int64))
+    residual = PhysicsResidual(system.with_coefficients(convection=prior), 5, learned={"convection": None})
+    assert residual.coefficients is not None
+    optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=1e-2)
+    states, actions, nxt = (torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1))
+    for _ in range(120):
+        loss = residual.coefficient_loss(states, actions, nxt)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert residual.coefficients.current()["convection"] == pytest.approx(true, rel=0.01)
+
+
+def test_trainer_fits_coefficients_on_labelled_batches_and_checkpoints_them() -> None:
+    from pimbrl.models import TransitionData
+
+    system = Burgers(nu=0.013)
+    prior = system.with_coefficients(nu=0.01)
+    rng = np.random.default_rng(1)
+    u = 0.3 + 0.05 * rng.normal(size=(64, system.n))
+    a = rng.uniform(system.action_low, system.action_high, size=(64, 2))
+    u1, _ = system.advance(u, a, np.zeros(64, dtype=np.int64))
+    data = TransitionData(*(torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1)))
+    trainer = ModelTrainer(make_model(prior), PhysicsResidual(prior, 5, learned={"nu": None}), coefficient_lr=2e-2)
+    metrics = trainer.fit(30, 32, np.random.default_rng(0), labelled=data)
+    assert metrics["model/coefficient_loss"] > 0
+    assert trainer.coefficients is not None
+    moved = trainer.coefficients.current()["nu"]
+    assert abs(moved - 0.013) < abs(0.01 - 0.013) / 2  # well on its way from the prior to the truth
+    again = ModelTrainer(make_model(prior), PhysicsResidual(prior, 5, learned={"nu": None}))
+    again.load_state_dict(trainer.state_dict())
+    assert again.coefficients is not None
+    assert again.coefficients.current() == trainer.coefficients.current()
+
+
+def test_configuration_errors_name_the_problem() -> None:
+    ok = resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu"})
+    assert ok.dyna.learn_coefficients == "nu"
+    with pytest.raises(ConfigError, match=r"has no coefficient 'nuu' \(did you mean 'nu'\?\)"):
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nuu"})
+    with pytest.raises(ConfigError, match=r"dyna.physics_prior: pimbrl/Burgers-v0 has no coefficient 'm'"):
+        resolve_config("pimbrl/Burgers-v0", {"method": "mbrl", "dyna.physics_prior": "m=1"})
+    with pytest.raises(ConfigError, match="needs the etd residual"):
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu", "dyna.residual": "solver"})
+
+
+def test_learned_coefficient_flags_are_refused_where_they_do_nothing(tmp_path) -> None:
+    assert (
+        main(["train", "burgers", "--method", "mbrl", "--dyna.learn-coefficients", "nu", "--run-dir", str(tmp_path / "a")]) == 2
+    )
+    assert (
+        main(["train", "pendulum", "--method", "pimbrl", "--dyna.learn-coefficients", "m", "--run-dir", str(tmp_path / "b")]) == 2
+    )
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients_json(tmp_path) -> None:
+    run = tmp_path / "run"
+    args = [
+        "train", "burgers", "--method", "pimbrl", "--run-dir", str(run), *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL,
+        "--env-kwargs", '{"nu": 0.013}', "--dyna.physics-prior", "nu=0.01", "--dyna.learn-coefficients", "nu",
+        "--dyna.coefficient-lr", "0.05",
+    ]  # fmt: skip
+    assert main(args) == 0
+    report = json.loads((run / "coefficients.json").read_text())
+    assert report["environment"]["nu"] == 0.013 and report["prior"]["nu"] == 0.01
+    assert report["learned"] == {"nu": None}
+    history = report["history"]
+    assert len(history) >= 2 and history[0]["step"] < history[-1]["step"]
+    assert abs(report["current"]["nu"] - 0.013) < abs(0.01 - 0.013) / 2
+    assert report["current"]["nu"] == history[-1]["nu"]
+    from pimbrl.training import RunDirectory
+
+    last = RunDirectory(run).metrics([]).read()[-1]
+    assert float(last["coef/nu"]) == pytest.approx(report["current"]["nu"], rel=1e-6)
+    assert float(last["model/coefficient_loss"]) > 0
