@@ -1,0 +1,152 @@
+"""Partially-known physics: the system's coefficients differ from the physics prior the model is held to.
+
+For one environment whose true coefficients differ from the prior's (``--true nu=0.013 --prior nu=0.01``),
+runs, over the seeds, with the same budget and the same evaluation states:
+
+* ``mbrl``: the data-only model (the prior judges imagined steps, but no physics loss);
+* ``pimbrl-wrong``: the physics loss of the wrong prior, fixed;
+* ``pimbrl-learned``: the physics loss with the ``--learn`` coefficients fitted to the labels, from the prior;
+* ``pimbrl-true``: the physics loss of the true system (the upper reference).
+
+Each run is a separate process (one thread), ``--jobs`` at a time; finished runs are skipped, interrupted
+ones resumed. Prints and records (``--name``: ``benchmarks/results/<name>.json``) the steps to each
+threshold, the final and best returns and, for ``pimbrl-learned``, the identified coefficients after each
+model phase and the first real step at which they are within 5 % of the truth.
+
+Usage, e.g.::
+
+    python benchmarks/run_partial_physics.py burgers --true nu=0.013 --prior nu=0.01 --learn nu \\
+        --steps 900 --thresholds -11,-10.2 --out-dir runs/partial/burgers_nu+30 --name partial_burgers_nu+30
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+import _common
+
+from pimbrl.config import parse_prior
+from pimbrl.experiments.compare import RunSpec, run_all
+from pimbrl.training import RunDirectory
+from pimbrl.training.cli_args import config_from_argv
+from pimbrl.training.rundir import steps_to_threshold
+
+VARIANTS = ("mbrl", "pimbrl-wrong", "pimbrl-learned", "pimbrl-true")
+
+
+def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
+    """`pimbrl train` flags of one variant (the environment always gets the true coefficients)."""
+    env_kwargs = ["--env-kwargs", json.dumps(parse_prior(true))]
+    if variant == "mbrl":
+        return ["--method", "mbrl", *env_kwargs, "--dyna.physics-prior", prior]
+    if variant == "pimbrl-wrong":
+        return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior]
+    if variant == "pimbrl-learned":
+        return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior, "--dyna.learn-coefficients", learn]
+    if variant == "pimbrl-true":
+        return ["--method", "pimbrl", *env_kwargs]
+    raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+
+
+def identified_within(history: list[dict], truth: dict[str, float], tolerance: float = 0.05) -> int | None:
+    """First real step from which every learned coefficient stays within ``tolerance`` of the truth."""
+    first = None
+    for row in history:
+        ok = all(abs(row[name] - value) <= tolerance * abs(value) for name, value in truth.items() if name in row)
+        if ok and first is None:
+            first = int(row["step"])
+        elif not ok:
+            first = None
+    return first
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("env")
+    parser.add_argument("--true", required=True, help="the environment's coefficients, name=value,...")
+    parser.add_argument("--prior", required=True, help="the prior's coefficients, name=value,...")
+    parser.add_argument("--learn", required=True, help="coefficients pimbrl-learned fits, name[:low:high],...")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--steps", type=int, required=True)
+    parser.add_argument("--thresholds", required=True, help="comma-separated returns")
+    parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--out-dir", required=True)
+    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (one thread each)")
+    parser.add_argument("--name", default=None, help="record as benchmarks/results/<name>.json")
+    parser.add_argument("--no-run", action="store_true", help="summarise the runs as they are")
+    args, extra = parser.parse_known_args()
+    extra = [a for a in extra if a != "--"]
+    out = Path(args.out_dir)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    thresholds = [float(t) for t in args.thresholds.split(",")]
+    variants = args.variants.split(",")
+    specs = []
+    for variant in variants:
+        flags = variant_args(variant, args.true, args.prior, args.learn)
+        for seed in seeds:
+            argv = [args.env, "--seed", str(seed), "--threads", "1", "--steps", str(args.steps), *flags, *extra]
+            specs.append(RunSpec(variant, seed, out / variant / f"seed{seed}", config_from_argv(argv)))
+    if not args.no_run:
+        run_all(specs, jobs=args.jobs)
+    truth = parse_prior(args.true)
+    rows = []
+    for spec in specs:
+        run = RunDirectory(spec.path)
+        if not (spec.path / "evaluations.csv").exists():
+            continue
+        evaluations = run.evaluations.read()
+        returns = [float(r["return_mean"]) for r in evaluations]
+        row = {
+            "variant": spec.label,
+            "seed": spec.seed,
+            "steps": int(evaluations[-1]["step"]) if evaluations else 0,
+            "finished": run.status == "finished",
+            **{f"steps_to_{t:g}": steps_to_threshold(evaluations, t) for t in thresholds},
+            "final_return": returns[-1] if returns else None,
+            "best_return": max(returns) if returns else None,
+        }
+        report = spec.path / "coefficients.json"
+        if report.exists():
+            coefficients = json.loads(report.read_text())
+            row["identified"] = coefficients["current"]
+            current = coefficients["current"]
+            row["relative_error"] = {k: abs(v - truth[k]) / abs(truth[k]) for k, v in current.items() if k in truth}
+            row["within_5pct_from_step"] = identified_within(coefficients["history"], truth)
+        rows.append(row)
+    summary = {}
+    for variant in variants:
+        mine = [r for r in rows if r["variant"] == variant]
+        entry: dict = {"seeds": len(mine)}
+        for t in thresholds:
+            steps = [r[f"steps_to_{t:g}"] for r in mine]
+            reached = [s for s in steps if s is not None]
+            entry[f"steps_to_{t:g}"] = steps
+            entry[f"mean_steps_to_{t:g}"] = statistics.mean(reached) if len(reached) == len(steps) and steps else None
+        entry["final_return"] = [r["final_return"] for r in mine]
+        summary[variant] = entry
+        line = "  ".join(f"to {t:g}: {entry[f'steps_to_{t:g}']}" for t in thresholds)
+        print(f"{variant:>15}  {line}  final {[round(x, 2) for x in entry['final_return'] if x is not None]}")
+    for r in rows:
+        if "identified" in r:
+            within = r["within_5pct_from_step"]
+            print(f"  {r['variant']} seed {r['seed']}: identified {r['identified']}, within 5 % from step {within}")
+    payload = {
+        "env": args.env,
+        "true": args.true,
+        "prior": args.prior,
+        "learn": args.learn,
+        "steps": args.steps,
+        "thresholds": thresholds,
+        "extra_flags": extra,
+        "runs": rows,
+        "summary": summary,
+    }
+    if args.name:
+        _common.record(args.name, payload)
+
+
+if __name__ == "__main__":
+    main()
