@@ -286,11 +286,18 @@ class ReplayBuffer:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore contents and counters from :meth:`state_dict`; the capacity must match."""
-        if state["capacity"] != self.capacity:
-            raise ValueError(f"checkpointed buffer capacity {state['capacity']} differs from {self.capacity}")
+        """Restore contents and counters from :meth:`state_dict`.
+
+        The capacity must match, or be larger where the saved buffer never overwrote an entry (a run whose
+        budget was raised: its buffer, sized to the old budget, grows as if it had been sized to the new one).
+        """
         n = state["size"]
+        grow = state["capacity"] < self.capacity and state["total_added"] == n
+        if state["capacity"] != self.capacity and not grow:
+            raise ValueError(f"checkpointed buffer capacity {state['capacity']} differs from {self.capacity}")
         for k, v in state["data"].items():
             target = self.extras[k[len("extra/") :]] if k.startswith("extra/") else getattr(self, k)
             target[:n] = v
-        self.pos, self.size, self.total_added = state["pos"], n, state["total_added"]
+        # entries 0..n-1 were written in order: in the larger buffer the next one goes to n
+        self.pos = n % self.capacity if grow else state["pos"]
+        self.size, self.total_added = n, state["total_added"]

@@ -196,7 +196,11 @@ def _print_summary(run_dir: str, summary) -> None:
 
 def _cmd_resume(args: argparse.Namespace) -> int:
     from .training import open_run, train
+    from .training.runs import extend_run
 
+    if args.total_steps is not None:
+        extend_run(args.run_dir, args.total_steps)
+        print(f"{args.run_dir}: total_steps raised to {args.total_steps:,d}", file=sys.stderr)
     run = open_run(args.run_dir, progress=not args.quiet)
     if run.finished:
         train(run)  # repairs a "running" status left by a kill after the final checkpoint
@@ -448,6 +452,12 @@ def build_parser() -> argparse.ArgumentParser:
     rs = sub.add_parser("resume", help="continue a run from its last checkpoint")
     rs.add_argument("run_dir")
     rs.add_argument("--quiet", action="store_true")
+    rs.add_argument(
+        "--total-steps",
+        type=int,
+        default=None,
+        help="first raise the run's budget to this many real steps (continue a finished run, e.g. to a threshold)",
+    )
     rs.set_defaults(func=_cmd_resume)
 
     ev = sub.add_parser("eval", help="evaluate a run's latest checkpoint on its test episodes")

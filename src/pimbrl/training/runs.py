@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
+from ..config import ConfigError, to_dict, validate
 from .config import TrainConfig
-from .loop import Run, RunSummary, create_run, open_run, train
+from .loop import Run, RunSummary, create_run, open_run, read_run_config, train
+from .rundir import RunDirectory
 
-__all__ = ["load_run", "resume_training", "run_training"]
+__all__ = ["extend_run", "load_run", "resume_training", "run_training"]
 
 
 def run_training(cfg: TrainConfig, path: str | Path, *, progress: bool = True, command: str = "") -> RunSummary:
@@ -18,6 +21,36 @@ def run_training(cfg: TrainConfig, path: str | Path, *, progress: bool = True, c
 def resume_training(path: str | Path, *, progress: bool = True) -> RunSummary:
     """Continue the run in ``path`` from its last checkpoint to the end (a finished run returns at once)."""
     return train(open_run(path, progress=progress))
+
+
+def extend_run(path: str | Path, total_steps: int) -> None:
+    """Raise a run's ``total_steps`` so that resuming it continues past its old end (e.g. MFRL to a threshold).
+
+    Only ``config.json`` changes: ``total_steps`` and, for a finished run, its status (running again; the old
+    summary is dropped and written anew at the new end). The run continues from its final checkpoint with a
+    new episode, as every resumed run does (checkpoints do not hold an episode in progress): from the old end
+    on its steps differ from those of a run given the larger budget from the start, up to it they are the
+    same (tested). The real buffer, sized to the old budget, grows to the new one.
+
+    Raises:
+        ConfigError: if ``total_steps`` is not larger than the run's, or beyond the allowed maximum.
+    """
+    run_dir = RunDirectory(path)
+    payload = run_dir.read_config()  # not a run directory: FileNotFoundError, before any lock file is made
+    run_dir.lock(f"extend to {total_steps} steps")
+    try:
+        cfg = read_run_config(run_dir)
+        if total_steps <= cfg.total_steps:
+            raise ConfigError(f"--total-steps {total_steps:,d} must be larger than the run's total_steps {cfg.total_steps:,d}")
+        longer = dataclasses.replace(cfg, total_steps=int(total_steps))
+        validate(longer)
+        payload["config"] = to_dict(longer)
+        payload.pop("summary", None)
+        if payload.get("status") == "finished":
+            payload["status"] = "running"
+        run_dir.write_config(payload)
+    finally:
+        run_dir.unlock()
 
 
 def load_run(path: str | Path) -> Run:

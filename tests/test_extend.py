@@ -1,0 +1,43 @@
+"""`pimbrl resume RUN --total-steps N`: a finished run continued to a larger budget."""
+
+from __future__ import annotations
+
+import json
+
+from pimbrl.cli import main
+from pimbrl.training import RunDirectory
+
+from .test_dyna import DYNA_SMOKE, SMALL_MODEL, _for_method
+from .test_training import TINY
+
+
+def _returns(path) -> list[tuple[str, str]]:
+    return [(r["step"], r["return_mean"]) for r in RunDirectory(path).evaluations.read()]
+
+
+def test_an_extended_run_continues_to_the_larger_budget(tmp_path, capsys) -> None:
+    args = [*_for_method(DYNA_SMOKE["pendulum"], "mbrl"), *TINY, *SMALL_MODEL, "--method", "mbrl"]
+    args = [a if a != "300" else "150" for a in args]  # --steps 150 (the eval interval stays 150)
+    short, long = tmp_path / "short", tmp_path / "long"
+    assert main(["train", "pendulum", "--run-dir", str(short), *args]) == 0
+    assert json.loads((short / "config.json").read_text())["status"] == "finished"
+    assert main(["train", "pendulum", "--run-dir", str(long), *args, "--steps", "450"]) == 0
+    assert main(["resume", str(short), "--total-steps", "450", "--quiet"]) == 0
+    payload = json.loads((short / "config.json").read_text())
+    assert payload["status"] == "finished" and payload["config"]["total_steps"] == 450
+    assert payload["summary"]["steps"] == 450
+    # up to the old end the two are the same run; after it the extended one starts a new episode
+    assert _returns(short)[:1] == _returns(long)[:1]
+    assert [r["step"] for r in RunDirectory(short).evaluations.read()] == ["150", "300", "450"]
+
+
+def test_extending_to_fewer_steps_is_a_one_line_error(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    args = [*_for_method(DYNA_SMOKE["pendulum"], "mbrl"), *TINY, *SMALL_MODEL, "--method", "mbrl"]
+    assert main(["train", "pendulum", "--run-dir", str(run), *args]) == 0
+    capsys.readouterr()
+    before = (run / "config.json").read_text()
+    assert main(["resume", str(run), "--total-steps", "200"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--total-steps 200 must be larger than the run's total_steps 300" in err[0]
+    assert (run / "config.json").read_text() == before
