@@ -49,6 +49,18 @@ class ModelEvalConfig:
     sources: str = param("train,imagined", "physics-loss sources: train, imagined, symmetry, scaled, noise, box")
     units: str = param("substep", "units of the physics loss: substep or step", one_of("substep", "step"))
     model: str = param("convlstm", "PDE model: convlstm or equivariant", one_of("convlstm", "equivariant"))
+    env_coefficients: str = param(
+        "", "study: the environment's physical coefficients where they differ from the paper's, e.g. nu=0.013"
+    )
+    physics_prior: str = param(
+        "",
+        "study: coefficients of the physics loss's prior where they differ from the environment's, e.g. nu=0.01 "
+        "(adds the model physics-true, trained with the environment's own)",
+    )
+    learn_coefficients: str = param(
+        "", "study: coefficients fitted to the labels from the prior, e.g. nu (adds the model physics-learned)"
+    )
+    coefficient_lr: float = param(1e-2, "study: Adam learning rate of the learned coefficients", [positive(), at_most(MAX_LR)])
     rollout_lengths: tuple[int, ...] = param(
         (1,),
         "study: chained model steps at which the error is measured, e.g. 1,3,8",

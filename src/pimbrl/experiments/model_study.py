@@ -11,6 +11,11 @@ initialisation, for the same number of gradient steps:
   actions; ``imagined`` = states the model itself reaches from them). With ``L = 0`` its normalisation
   comes from the equation (the coarse scheme's increments), not from labels.
 
+With a physics prior that differs from the environment (``env_coefficients``, ``physics_prior``) the
+``physics`` model is held to the wrong prior; ``physics-true`` is trained with the environment's own
+coefficients (the upper reference) and, with ``learn_coefficients``, ``physics-learned`` with the prior's
+coefficients fitted to the labels (:mod:`pimbrl.models.coefficients`; the identified values are recorded).
+
 Both are tested on the same held-out in-sample transitions and on the out-of-sample transitions of
 :data:`~pimbrl.experiments.model_eval.OUT_OF_SAMPLE`, one step ahead and ``rollout_lengths`` chained
 steps ahead (open loop, the same random actions as the truth). Outputs: ``study.csv`` (one row per seed,
@@ -29,10 +34,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..config import parse_learned, parse_prior
 from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
+from ..models.residual import Scheme
 from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
+from ..physics import Physics
 from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions
 
 __all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
@@ -52,9 +60,10 @@ class PhysicsPairs:
         seeds: torch.Tensor,
         imagined_length: int,
         rng: np.random.Generator,
+        physics: Physics | None = None,
     ) -> None:
         self.task = task
-        self.physics = task.physics
+        self.physics = task.physics if physics is None else physics
         self.model = model
         self.sources = tuple(sources)
         self.seeds = seeds
@@ -142,10 +151,21 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
 
     validate(cfg)
     torch.set_num_threads(cfg.threads)
-    env = gym.make(env_id)
-    if not isinstance(env.unwrapped, PhysicsEnv) or env_id not in OUT_OF_SAMPLE:
+    if env_id not in OUT_OF_SAMPLE:
+        raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
+    env_kwargs: dict[str, Any] = dict(parse_prior(cfg.env_coefficients))
+    env = gym.make(env_id, **env_kwargs)
+    if not isinstance(env.unwrapped, PhysicsEnv):
         raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
     task = env.unwrapped.task
+    prior = task.physics.with_coefficients(**parse_prior(cfg.physics_prior))
+    learned = parse_learned(cfg.learn_coefficients)
+    variants: dict[str, tuple[Physics, dict]] = {"physics": (prior, {})}
+    if cfg.physics_prior:
+        variants["physics-true"] = (task.physics, {})
+    if learned:
+        variants["physics-learned"] = (prior, learned)
+    identified: list[dict[str, Any]] = []
     sources = _check_sources([s.strip() for s in cfg.sources.split(",") if s.strip()], task)
     labels = sorted(set(cfg.labels))
     horizons = sorted(set((1, *cfg.rollout_lengths)))
@@ -164,11 +184,14 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
         observed = pool.state[: max(cfg.seed_states, 1)]
         for n_labels in labels:
             labelled = pool.take(torch.arange(n_labels)) if n_labels else None
-            for name in ("data", "physics"):
+            for name in ("data", *variants):
+                physics, learn = variants.get(name, (prior, {}))
                 if name == "data" and labelled is None:
                     model = None  # no labels, no physics: predict no change
                 else:
-                    model = _train(task, cfg, name, labelled, observed, sources, seed, log)
+                    model, found = _train(task, cfg, name, labelled, observed, sources, seed, physics, learn)
+                    if found:
+                        identified.append({"seed": seed, "labels": n_labels, **found})
                 for split, traj in tests.items():
                     for h in horizons:
                         mse = _rollout_mse(model, traj, h, task)
@@ -187,7 +210,7 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
                 one = [
                     r for r in rows if r["seed"] == seed and r["labels"] == n_labels and r["horizon"] == 1 and r["split"] == "out"
                 ]
-                log(f"{env_id} seed {seed} labels {n_labels:5d} {name:7s}: out-of-sample 1-step MSE {one[-1]['mean']:.3e}")
+                log(f"{env_id} seed {seed} labels {n_labels:5d} {name:15s}: out-of-sample 1-step MSE {one[-1]['mean']:.3e}")
     cols = ["seed", "labels", "model", "split", "horizon", "mean", "median", "p90"]
     text = (
         ",".join(cols)
@@ -201,6 +224,10 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
         "sources": sources,
         "units": cfg.units,
         "model_kind": cfg.model,
+        "env_coefficients": task.physics.coefficient_values(),
+        "physics_prior": prior.coefficient_values(),
+        "learned": list(learned),
+        "identified": identified,
         "wall_s": time.perf_counter() - t0,
         "summary": summary,
     }
@@ -217,13 +244,26 @@ def _train(
     observed: torch.Tensor,
     sources: tuple[str, ...],
     seed: int,
-    log: Callable[[str], None],
-) -> TransitionModel:
-    physics = task.physics
+    physics: Physics,
+    learned: dict,
+) -> tuple[TransitionModel, dict[str, float]]:
+    """A model trained with the data loss (``data``) or with the physics loss of ``physics`` too.
+
+    Returns the model and the learned coefficients' identified values (empty where none is learned).
+    """
     torch.manual_seed(seed)
     model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=cfg.model)
-    residual = PhysicsResidual(physics, model.n_intermediate, "solver" if cfg.scheme == "solver" else "etd", cfg.units)
-    trainer = ModelTrainer(model, residual if name == "physics" else None, lr=cfg.lr, weight_physics=cfg.physics_weight)
+    scheme: Scheme = "solver" if cfg.scheme == "solver" else "etd"
+    residual = PhysicsResidual(
+        physics, model.n_intermediate, scheme, cfg.units, learned=learned if labelled is not None else None
+    )
+    trainer = ModelTrainer(
+        model,
+        residual if name != "data" else None,
+        lr=cfg.lr,
+        weight_physics=cfg.physics_weight,
+        coefficient_lr=cfg.coefficient_lr,
+    )
     rng = np.random.default_rng(seed + 1)
     if labelled is not None:
         trainer.ensure_normalization(labelled)
@@ -232,7 +272,7 @@ def _train(
         with torch.no_grad():
             nxt = residual.rollout(observed.double(), a.double())[:, -1].float()
         model.fit_normalization(observed, nxt)
-    pairs = PhysicsPairs(task, model, sources, observed, cfg.imagined_length, rng) if name == "physics" else None
+    pairs = PhysicsPairs(task, model, sources, observed, cfg.imagined_length, rng, physics) if name != "data" else None
     done = 0
     while done < cfg.steps:
         chunk = min(cfg.refresh_every, cfg.steps - done)
@@ -240,7 +280,7 @@ def _train(
             pairs.refresh(rng)
         trainer.fit(chunk, cfg.batch_size, rng, labelled=labelled, unlabelled=pairs)
         done += chunk
-    return model
+    return model, ({} if trainer.coefficients is None else trainer.coefficients.current())
 
 
 def _summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -259,7 +299,13 @@ def _plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
 
     horizons = sorted({r["horizon"] for r in summary})
     fig, axes = plt.subplots(2, len(horizons), figsize=(3.6 * len(horizons), 6.4), squeeze=False)
-    colors = {"data": "tab:orange", "physics": "tab:blue", "no-change": "tab:gray"}
+    colors = {
+        "data": "tab:orange",
+        "physics": "tab:blue",
+        "physics-learned": "tab:green",
+        "physics-true": "tab:purple",
+        "no-change": "tab:gray",
+    }
     for i, split in enumerate(("in", "out")):
         for j, h in enumerate(horizons):
             ax = axes[i, j]
