@@ -41,10 +41,15 @@ def test_learned_coefficients_start_at_the_prior_and_respect_their_range() -> No
         LearnedCoefficients(prior, {"damping": (0.1, 1.0)})  # the prior's damping is 0
     start = learned.current()
     assert start["nu"] == pytest.approx(0.007, rel=1e-12)
-    assert start["damping"] == pytest.approx(1e-3, rel=1e-9)  # the prior (0) is the range's edge: just inside
+    assert start["damping"] == 0.0  # the prior is the range's edge: it starts there
     with torch.no_grad():
         learned.theta.fill_(50.0)
-    assert 0.0 < learned.current()["damping"] <= 1.0
+    learned.project()
+    assert learned.current()["damping"] == 1.0
+    with torch.no_grad():
+        learned.theta.fill_(-3.0)
+    learned.project()
+    assert learned.current()["damping"] == 0.0
     with pytest.raises(ValueError, match="need a PDE system"):
         LearnedCoefficients(Pendulum(), {"m": None})
     with pytest.raises(ValueError, match="has no coefficient 'nuu'"):
@@ -72,24 +77,30 @@ def test_the_physics_loss_uses_the_coefficients_without_moving_them() -> None:
     assert residual.coefficients.theta.grad is None  # but not the coefficients
 
 
-@pytest.mark.parametrize(("true", "prior"), [(1.3, 1.0), (0.7, 1.0)])
-def test_a_wrong_convection_coefficient_is_identified_from_labelled_transitions(true: float, prior: float) -> None:
-    """KS with the convection term 30 % off: the inverse problem recovers it within 1 %."""
-    system = KuramotoSivashinsky(convection=true)
+@pytest.mark.parametrize(
+    ("name", "true", "prior", "bounds"),
+    [("convection", 1.3, 1.0, None), ("convection", 0.7, 1.0, None), ("damping", 0.1, 0.0, (0.0, 1.0))],
+)
+def test_a_wrong_or_missing_ks_coefficient_is_identified_from_labelled_transitions(
+    name: str, true: float, prior: float, bounds: tuple[float, float] | None
+) -> None:
+    """KS with the convection term 30 % off, or a damping term the prior lacks: identified within 1 %."""
+    system = KuramotoSivashinsky(**{name: true})
     rng = np.random.default_rng(0)
     u = ks_initial_state_pool("train").states[rng.integers(0, 500, 256)]
     a = rng.uniform(-0.5, 0.5, size=(256, 4))
     u1, _ = system.advance(u, a, np.zeros(256, dtype=np.int64))
-    residual = PhysicsResidual(system.with_coefficients(convection=prior), 5, learned={"convection": None})
+    residual = PhysicsResidual(system.with_coefficients(**{name: prior}), 5, learned={name: bounds})
     assert residual.coefficients is not None
     optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=1e-2)
     states, actions, nxt = (torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1))
-    for _ in range(120):
+    for _ in range(150):
         loss = residual.coefficient_loss(states, actions, nxt)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    assert residual.coefficients.current()["convection"] == pytest.approx(true, rel=0.01)
+        residual.coefficients.project()
+    assert residual.coefficients.current()[name] == pytest.approx(true, rel=0.01)
 
 
 def test_trainer_fits_coefficients_on_labelled_batches_and_checkpoints_them() -> None:

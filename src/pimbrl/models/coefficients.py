@@ -21,7 +21,6 @@ range).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import torch
@@ -33,17 +32,15 @@ from ..physics.pde import SemilinearPDE
 __all__ = ["LearnedCoefficients", "parse_learned", "parse_prior"]
 
 
-#: a prior on the edge of its range starts this fraction of the range inside (the sigmoid never reaches it)
-_EDGE = 1e-3
-
-
 class LearnedCoefficients(torch.nn.Module):
     """Trainable physical coefficients of a PDE's residual, initialised at the prior's values.
 
     A free coefficient is ``prior + scale * theta`` with ``scale = |prior|`` (1 where the prior is 0), so that
     Adam's steps are relative changes whatever the coefficient's units; a ranged one is
-    ``low + (high - low) * sigmoid(theta)``, starting a thousandth of the range inside where the prior is on
-    its edge (a missing damping term: prior 0, range ``0:1``).
+    ``low + (high - low) * theta`` with ``theta`` projected back into ``[0, 1]`` after every step
+    (:meth:`project`), so that its steps are fractions of the range and a prior on the range's edge (a missing
+    damping term: prior 0, range ``0:1``) can start there. (A sigmoid would need hundreds of Adam steps to
+    leave an edge: its logit starts far out.)
 
     Args:
         physics: the prior (its values are the starting point).
@@ -78,8 +75,7 @@ class LearnedCoefficients(torch.nn.Module):
                         f"learned coefficient {name}: the prior's value {value} lies outside its range [{low}, {high}]; "
                         f"give the prior a value inside (e.g. --dyna.physics-prior {name}=...)"
                     )
-                p = min(max((value - low) / (high - low), _EDGE), 1 - _EDGE)  # an edge: start just inside
-                raw.append(math.log(p / (1 - p)))
+                raw.append((value - low) / (high - low))
             self.prior[name] = value
         self.theta = torch.nn.Parameter(torch.tensor(raw, dtype=torch.float64))
 
@@ -93,8 +89,15 @@ class LearnedCoefficients(torch.nn.Module):
                 out[name] = prior + (abs(prior) or 1.0) * self.theta[i]
             else:
                 low, high = bounds
-                out[name] = low + (high - low) * torch.sigmoid(self.theta[i])
+                out[name] = low + (high - low) * self.theta[i]
         return out
+
+    @torch.no_grad()
+    def project(self) -> None:
+        """Put every ranged coefficient back into its range (after an optimiser step)."""
+        for i, name in enumerate(self.names):
+            if self.ranges[name] is not None:
+                self.theta[i].clamp_(0.0, 1.0)
 
     def current(self) -> dict[str, float]:
         """The coefficients' current values as floats."""

@@ -134,6 +134,7 @@ class ModelTrainer:
         """One Adam step of the learned coefficients on a labelled batch (the inverse problem)."""
         assert self.residual is not None
         assert self.coefficient_optimizer is not None
+        assert self.coefficients is not None
         assert labelled.next_state is not None
         loss = self.residual.coefficient_loss(labelled.state, labelled.action, labelled.next_state)
         if not torch.isfinite(loss):
@@ -141,6 +142,7 @@ class ModelTrainer:
         self.coefficient_optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.coefficient_optimizer.step()
+        self.coefficients.project()
         return float(loss.detach())
 
     def fit(
