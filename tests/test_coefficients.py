@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import pimbrl  # noqa: F401 - registers the environments
+from pimbrl.envs import BurgersTask, ks_initial_state_pool
 from pimbrl.physics import Burgers, KuramotoSivashinsky
 from pimbrl.physics.pde import ETDRK4, SemilinearPDE
 
@@ -16,15 +17,18 @@ PDES = (Burgers, KuramotoSivashinsky)
 
 @pytest.mark.parametrize("cls", PDES)
 def test_operators_at_own_coefficients_equal_the_simulator_parts(cls: type[SemilinearPDE]) -> None:
-    physics = cls().with_coefficients(damping=0.05, convection=1.2, actuator_width=0.9 * cls().actuator_width)
+    physics = cls().with_coefficients(damping=0.05, convection=1.2, actuator_width=0.9 * cls().actuator_width, drift=0.1)
     lam, nonlinear, shapes = physics.operators({})
-    symbol = physics.linear.symbol(physics.n)[: physics.n // 2 + 1].real
+    symbol = physics.linear.symbol(physics.n)[: physics.n // 2 + 1]
+    assert np.iscomplexobj(lam) and np.abs(symbol.imag).max() > 0  # the drift: a non-symmetric operator
     np.testing.assert_allclose(lam, symbol, rtol=1e-12, atol=1e-9 * np.abs(symbol).max())
     assert nonlinear == physics.nonlinear_coef
     np.testing.assert_allclose(shapes, physics.actuator_shapes, rtol=1e-14)
     tensors = {k: torch.tensor(v, dtype=torch.float64) for k, v in physics.coefficient_values().items()}
     lam_t, nonlinear_t, shapes_t = physics.operators(tensors)
     np.testing.assert_allclose(lam_t.numpy(), lam, rtol=1e-12, atol=1e-9 * np.abs(symbol).max())
+    drift_free = physics.with_coefficients(drift=0.0).operators({})[0]
+    assert not np.iscomplexobj(drift_free)  # real eigenvalues (and a real ETD step) without a drift
     assert float(nonlinear_t) == pytest.approx(nonlinear, rel=1e-14)
     np.testing.assert_allclose(shapes_t.numpy(), shapes, rtol=1e-12)
 
@@ -56,8 +60,8 @@ def test_differentiable_etd_step_equals_the_fixed_one_and_has_gradients() -> Non
 @pytest.mark.parametrize(
     ("cls", "changes"),
     [
-        (Burgers, {"nu": 0.013, "damping": 0.1, "convection": 0.8, "actuator_width": 0.08}),
-        (KuramotoSivashinsky, {"anti_diffusion": 0.7, "hyper_diffusion": 1.3, "convection": 1.3, "damping": 0.1}),
+        (Burgers, {"nu": 0.013, "damping": 0.1, "convection": 0.8, "actuator_width": 0.08, "drift": 0.05}),
+        (KuramotoSivashinsky, {"anti_diffusion": 0.7, "hyper_diffusion": 1.3, "convection": 1.3, "damping": 0.1, "drift": 0.3}),
     ],
 )
 def test_compiled_simulator_follows_changed_coefficients(cls: type[SemilinearPDE], changes: dict[str, float]) -> None:
@@ -85,7 +89,9 @@ def test_bad_coefficients_are_one_line_errors() -> None:
         Burgers().with_coefficients(nuu=0.01)
     with pytest.raises(ValueError, match="must be a finite number"):
         Burgers().with_coefficients(nu=float("nan"))
-    with pytest.raises(ValueError, match=r"unstable .* give a smaller dt"):
+    with pytest.raises(
+        ValueError, match=r"unstable \(it amplifies a mode 1.4 times more than the equation, per step\); give a smaller dt"
+    ):
         Burgers(nu=0.02)
     with pytest.raises(ValueError, match="hyper_diffusion must be > 0"):
         KuramotoSivashinsky(hyper_diffusion=0.0)
@@ -107,3 +113,32 @@ def test_environments_take_coefficients_as_keyword_arguments(env_id: str, name: 
     assert not np.array_equal(env.step(action)[0], default.step(action)[0])
     with pytest.raises(ValueError, match="no coefficient"):
         gym.make(env_id, not_a_coefficient=1.0)
+
+
+@pytest.mark.parametrize("cls", PDES)
+def test_the_etd_residual_follows_a_drift(cls: type[SemilinearPDE]) -> None:
+    """With a drift (complex eigenvalues) the coarse ETD step treats the linear part exactly, as without."""
+    from pimbrl.models import PhysicsResidual
+
+    rng = np.random.default_rng(3)
+    k = np.zeros(4, dtype=np.int64)
+    errors = {}
+    for drift in (0.0, 0.2):
+        physics = cls(drift=drift)
+        u = BurgersTask().sample_initial_states(rng, 4) if cls is Burgers else ks_initial_state_pool("train").states[:4]
+        a = rng.uniform(physics.action_low, physics.action_high, size=(4, physics.action_dim))
+        truth, _ = physics.advance(u, a, k)
+        coarse = PhysicsResidual(physics, 5).rollout(torch.as_tensor(u), torch.as_tensor(a))[:, -1].numpy()
+        errors[drift] = float(np.mean((coarse - truth) ** 2))
+        if drift:  # the scheme errs far less than the drift moves the step
+            without, _ = cls().advance(u, a, k)
+            assert errors[drift] < 1e-2 * float(np.mean((truth - without) ** 2))
+        tiny = 1e-6 * (u - u.mean(-1, keepdims=True))  # the linear part alone (no forcing, no nonlinearity)
+        zero = np.zeros_like(a)
+        linear_truth, _ = physics.advance(tiny, zero, k)
+        linear = PhysicsResidual(physics, 5).rollout(torch.as_tensor(tiny), torch.as_tensor(zero))[:, -1].numpy()
+        # exact but for the simulator's own time-stepping error (explicit Euler for Burgers: ~6e-4 relative)
+        assert np.abs(linear - linear_truth).max() < 2e-3 * np.abs(linear_truth).max()
+    if cls is KuramotoSivashinsky:  # converges with the number of steps (Burgers: the Euler simulator's error is the floor)
+        fine = PhysicsResidual(physics, 25).rollout(torch.as_tensor(u), torch.as_tensor(a))[:, -1].numpy()
+        assert float(np.mean((fine - truth) ** 2)) < errors[0.2] / 3

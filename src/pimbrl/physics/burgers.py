@@ -21,10 +21,12 @@ from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil
 
-__all__ = ["BURGERS_D2", "BURGERS_UPWIND", "Burgers"]
+__all__ = ["BURGERS_D1", "BURGERS_D2", "BURGERS_UPWIND", "Burgers"]
 
 #: 4th-order central second difference (raw: divide by dx^2).
 BURGERS_D2 = Stencil.centered((-1 / 12, 4 / 3, -5 / 2, 4 / 3, -1 / 12), "D2")
+#: 4th-order central first difference (raw: divide by dx), for the ``drift`` term.
+BURGERS_D1 = Stencil.centered((1 / 12, -2 / 3, 0.0, 2 / 3, -1 / 12), "D1")
 #: 2nd-order backward first difference (raw: divide by dx), applied to u^2.
 BURGERS_UPWIND = Stencil((-2, -1, 0), (0.5, -2.0, 1.5), "Db")
 
@@ -49,13 +51,15 @@ class Burgers(SemilinearPDE):
             a physics prior may miss).
         actuator_width: half-width ``w`` of the actuators ``exp(-((xi - c)/w)^2)`` (1/15, i.e. the paper's
             ``exp(-225 (xi - c)^2)``).
+        drift: speed ``c`` of a linear advection term ``-c u_xi`` on the right-hand side (0: none; a term of a
+            form a physics prior may lack altogether; 4th-order central difference).
 
-    The physical coefficients (:attr:`coefficients`) are ``nu``, ``convection``, ``damping`` and
-    ``actuator_width``.
+    The physical coefficients (:attr:`coefficients`) are ``nu``, ``convection``, ``damping``,
+    ``actuator_width`` and ``drift``.
     """
 
     name = "burgers"
-    coefficients = ("nu", "convection", "damping", "actuator_width")
+    coefficients = ("nu", "convection", "damping", "actuator_width", "drift")
 
     @records_arguments
     def __init__(
@@ -73,6 +77,7 @@ class Burgers(SemilinearPDE):
         convection: float = 1.0,
         damping: float = 0.0,
         actuator_width: float = 1 / 15,
+        drift: float = 0.0,
     ) -> None:
         if n < 5:
             raise ValueError(f"Burgers needs at least 5 grid points, got n={n}")
@@ -96,6 +101,7 @@ class Burgers(SemilinearPDE):
         self.convection = float(convection)
         self.damping = float(damping)
         self.actuator_width = float(actuator_width)
+        self.drift = float(drift)
         self.x = np.arange(self.n) * self.dx
         #: ``(2, n)`` actuator shapes, ``exp(-225 (xi - 0.25)^2)`` and ``exp(-225 (xi - 0.75)^2)`` by default
         self.actuator_shapes = self._shapes(self.actuator_width)
@@ -103,11 +109,13 @@ class Burgers(SemilinearPDE):
         self.linear = BURGERS_D2.scaled(self.nu / self.dx**2, "nu*D2/dx^2")
         if self.damping != 0.0:
             self.linear = self.linear + Stencil((0,), (-self.damping,), "-mu")
+        if self.drift != 0.0:
+            self.linear = self.linear + BURGERS_D1.scaled(-self.drift / self.dx, "-c*D1/dx")
         #: coefficient of ``Db(u^2)``: ``-(u^2/2)_xi = -Db(u^2) / (2 dx)``
         self.nonlinear_coef = -self.convection / (2.0 * self.dx)
         self.method = "euler"
         self._kernel: PDEKernel | None = None
-        self._check_stability(2.0)  # explicit Euler on a real negative spectrum
+        self._check_stability()
 
     def _shapes(self, width: Any) -> Any:
         xp = xp_of(width)
@@ -120,10 +128,14 @@ class Burgers(SemilinearPDE):
         """``lam = nu D2/dx^2 - mu``, ``-convection / (2 dx)`` and the actuator shapes (see the base class)."""
         nu, mu = self._coefficient(values, "nu"), self._coefficient(values, "damping")
         d2: Any = BURGERS_D2.symbol(self.n)[: self.n // 2 + 1].real / self.dx**2
+        d1: Any = BURGERS_D1.symbol(self.n)[: self.n // 2 + 1] / self.dx  # imaginary: a first derivative
         tensors = [v for v in values.values() if isinstance(v, torch.Tensor)]
         if tensors:
-            d2 = torch.as_tensor(d2, dtype=torch.float64)
+            d2, d1 = torch.as_tensor(d2, dtype=torch.float64), torch.as_tensor(d1, dtype=torch.complex128)
         lam = nu * d2 - mu
+        drift = self._coefficient(values, "drift")
+        if isinstance(drift, torch.Tensor) or drift != 0.0:  # complex eigenvalues only where there is a drift
+            lam = lam - drift * d1
         nonlinear = -self._coefficient(values, "convection") / (2.0 * self.dx)
         width = self._coefficient(values, "actuator_width")
         return lam, nonlinear, self._shapes(width)

@@ -63,13 +63,15 @@ class KuramotoSivashinsky(SemilinearPDE):
             a physics prior may miss).
         actuator_width: standard deviation ``s`` of the Gaussian actuators
             ``exp(-(x - x_i)^2 / (2 s^2)) / (sqrt(2 pi) s)`` (1).
+        drift: speed ``c`` of a linear advection term ``-c u_x`` on the right-hand side (0: none; a term of a
+            form a physics prior may lack altogether; 6th-order central difference).
 
     The physical coefficients (:attr:`coefficients`) are ``anti_diffusion``, ``hyper_diffusion``,
-    ``convection``, ``damping`` and ``actuator_width``.
+    ``convection``, ``damping``, ``actuator_width`` and ``drift``.
     """
 
     name = "ks"
-    coefficients = ("anti_diffusion", "hyper_diffusion", "convection", "damping", "actuator_width")
+    coefficients = ("anti_diffusion", "hyper_diffusion", "convection", "damping", "actuator_width", "drift")
 
     @records_arguments
     def __init__(
@@ -87,6 +89,7 @@ class KuramotoSivashinsky(SemilinearPDE):
         convection: float = 1.0,
         damping: float = 0.0,
         actuator_width: float = 1.0,
+        drift: float = 0.0,
     ) -> None:
         if n < 2 * KS_D4.halo + 1:
             raise ValueError(f"KS needs at least {2 * KS_D4.halo + 1} grid points, got n={n}")
@@ -116,6 +119,7 @@ class KuramotoSivashinsky(SemilinearPDE):
         self.convection = float(convection)
         self.damping = float(damping)
         self.actuator_width = float(actuator_width)
+        self.drift = float(drift)
 
         self.x = np.arange(self.n) * self.dx
         self.actuator_centres = np.array([0.0, 0.25, 0.5, 0.75]) * self.length
@@ -129,6 +133,8 @@ class KuramotoSivashinsky(SemilinearPDE):
         )
         if self.damping != 0.0:
             self.linear = self.linear + Stencil((0,), (-self.damping,), "-mu")
+        if self.drift != 0.0:
+            self.linear = self.linear + KS_D1.scaled(-self.drift / dx, "-c*D1/dx")
         #: coefficient of the upwind term ``Dup(u^2)``
         self.nonlinear_coef = -self.convection / (2.0 * dx)
         # weights of the reward integrands [mean (D2u)^2, mean (Dup u^2)^2, mean (D1u)^2, mean u f]
@@ -138,7 +144,7 @@ class KuramotoSivashinsky(SemilinearPDE):
             self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
         self.method = "rk4"
         self._kernel: PDEKernel | None = None  # compiled on first use
-        self._check_stability(2.78)  # classic RK4 on a real negative spectrum
+        self._check_stability()
 
     def _shapes(self, width: Any) -> Any:
         dist: Any = self.x[None, :] - self.actuator_centres[:, None]
@@ -154,10 +160,15 @@ class KuramotoSivashinsky(SemilinearPDE):
         modes = self.n // 2 + 1
         d2: Any = KS_D2.symbol(self.n)[:modes].real / self.dx**2
         d4: Any = KS_D4.symbol(self.n)[:modes].real / self.dx**4
+        d1: Any = KS_D1.symbol(self.n)[:modes] / self.dx  # imaginary: a first derivative
         if any(isinstance(v, torch.Tensor) for v in values.values()):
             d2, d4 = torch.as_tensor(d2, dtype=torch.float64), torch.as_tensor(d4, dtype=torch.float64)
+            d1 = torch.as_tensor(d1, dtype=torch.complex128)
         get = functools.partial(self._coefficient, values)
         lam = -get("hyper_diffusion") * d4 - get("anti_diffusion") * d2 - get("damping")
+        drift = get("drift")
+        if isinstance(drift, torch.Tensor) or drift != 0.0:  # complex eigenvalues only where there is a drift
+            lam = lam - drift * d1
         return lam, -get("convection") / (2.0 * self.dx), self._shapes(get("actuator_width"))
 
     # ------------------------------------------------------------------ equation

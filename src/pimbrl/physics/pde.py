@@ -59,23 +59,32 @@ class SemilinearPDE(Physics):
         """The equation's parts as functions of its physical coefficients, for coefficients being learned.
 
         ``values`` maps some of :attr:`coefficients` to floats or torch tensors (the others keep this object's
-        values). Returns ``(lam, nonlinear_coef, actuator_shapes)``: the real eigenvalues of ``L`` on the
-        ``n // 2 + 1`` rfft modes, the coefficient of the upwind term and the ``(action_dim, n)`` actuator
-        shapes; torch tensors, differentiable in the tensor values, where any value is a tensor. At this
-        object's own coefficients they equal :attr:`linear`'s symbol, :attr:`nonlinear_coef` and
-        :attr:`actuator_shapes` to round-off (tested).
+        values). Returns ``(lam, nonlinear_coef, actuator_shapes)``: the eigenvalues of ``L`` on the
+        ``n // 2 + 1`` rfft modes (real; complex where a ``drift`` term makes ``L`` non-symmetric), the
+        coefficient of the upwind term and the ``(action_dim, n)`` actuator shapes; torch tensors,
+        differentiable in the tensor values, where any value is a tensor. At this object's own coefficients
+        they equal :attr:`linear`'s symbol, :attr:`nonlinear_coef` and :attr:`actuator_shapes` to round-off
+        (tested).
         """
 
     def _coefficient(self, values: Mapping[str, Any], name: str) -> Any:
         return values.get(name, getattr(self, name))
 
-    def _check_stability(self, limit: float) -> None:
-        """Refuse coefficients for which the explicit solver step is unstable (``dt |lambda|_max > limit``)."""
-        worst = float(np.max(np.abs(self.linear.symbol(self.n).real))) * self.dt
-        if worst > limit:
+    def _check_stability(self) -> None:
+        """Refuse coefficients for which the explicit solver step amplifies a mode of the linear part.
+
+        The amplification factor of one step, ``R(dt lambda)`` (explicit Euler ``1 + z``, classic RK4 its
+        4th-order Taylor polynomial), must not exceed ``max(1, |exp(z)|)`` (the exact factor, for modes the
+        equation itself amplifies, like KS's longest waves) by more than 1e-6 on any Fourier mode.
+        """
+        z = self.dt * self.linear.symbol(self.n)
+        factor = 1 + z if self.method == "euler" else 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+        excess = np.abs(factor) / np.maximum(1.0, np.abs(np.exp(z)))
+        worst = float(np.max(excess))
+        if worst > 1 + 1e-6:
             raise ValueError(
-                f"{self.name}: with these coefficients the {self.method} solver step is unstable "
-                f"(dt * |lambda|_max = {worst:.3g} > {limit}); give a smaller dt (and more substeps)"
+                f"{self.name}: with these coefficients the {self.method} solver step is unstable (it amplifies "
+                f"a mode {worst:.3g} times more than the equation, per step); give a smaller dt (and more substeps)"
             )
 
     # ------------------------------------------------------------------ equation
@@ -148,9 +157,16 @@ def etd_coefficients(lam: Any, h: float, contour_points: int = 32) -> dict[str, 
 
     NumPy arrays in, complex NumPy arrays out; a torch tensor in (e.g. eigenvalues that depend on trainable
     coefficients), complex128 tensors out, differentiable in ``lam``. The phi-functions are contour means
-    (Kassam & Trefethen 2005), free of the cancellation of the direct formulas for small ``h lam``.
+    (Kassam & Trefethen 2005), free of the cancellation of the direct formulas for small ``h lam``: over the
+    upper half circle for real eigenvalues (the real part of that mean is the whole circle's), over the whole
+    circle for complex ones (a drift term).
     """
-    r = np.exp(1j * np.pi * (np.arange(1, contour_points + 1) - 0.5) / contour_points)
+    # (a symmetric stencil's symbol is real up to round-off)
+    complex_lam = lam.is_complex() if isinstance(lam, torch.Tensor) else not np.allclose(np.imag(lam), 0.0)
+    if complex_lam:  # the whole circle around each h lam (twice the points)
+        r = np.exp(2j * np.pi * (np.arange(1, 2 * contour_points + 1) - 0.5) / (2 * contour_points))
+    else:  # real h lam: the upper half circle, whose mean has the whole circle's real part
+        r = np.exp(1j * np.pi * (np.arange(1, contour_points + 1) - 0.5) / contour_points)
     if isinstance(lam, torch.Tensor):
         xp: Any = torch
         lr = h * lam.to(torch.complex128)[:, None] + torch.as_tensor(r, device=lam.device)[None, :]
@@ -190,8 +206,8 @@ class ETDRK4:
         self._cache: dict[tuple[torch.dtype, torch.device], dict[str, torch.Tensor]] = {}
         if isinstance(linear, torch.Tensor):
             coeffs = etd_coefficients(linear, self.h, contour_points)
-            self._real = True  # the eigenvalues given are real (symmetric stencils)
-            self._coeffs: dict[str, Any] = {k: v.real for k, v in coeffs.items()}
+            self._real = not linear.is_complex()  # real eigenvalues: symmetric stencils
+            self._coeffs: dict[str, Any] = {k: v.real for k, v in coeffs.items()} if self._real else coeffs
             self._differentiable = True
             return
         self._differentiable = False
@@ -203,7 +219,8 @@ class ETDRK4:
 
     def _torch_coeffs(self, u: torch.Tensor) -> dict[str, torch.Tensor]:
         if self._differentiable:
-            return {k: v.to(device=u.device, dtype=u.dtype) for k, v in self._coeffs.items()}
+            dtype = u.dtype if self._real else (torch.complex128 if u.dtype == torch.float64 else torch.complex64)
+            return {k: v.to(device=u.device, dtype=dtype) for k, v in self._coeffs.items()}
         key = (u.dtype, u.device)
         if key not in self._cache:
             dtype = u.dtype if self._real else (torch.complex128 if u.dtype == torch.float64 else torch.complex64)
