@@ -166,3 +166,42 @@ def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients
     last = RunDirectory(run).metrics([]).read()[-1]
     assert float(last["coef/nu"]) == pytest.approx(report["current"]["nu"], rel=1e-6)
     assert float(last["model/coefficient_loss"]) > 0
+
+
+def _fit(residual: PhysicsResidual, u, a, u1, steps: int) -> None:
+    assert residual.coefficients is not None
+    optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=1e-2)
+    states, actions, nxt = (torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1))
+    for _ in range(steps):
+        loss = residual.coefficient_loss(states, actions, nxt)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        residual.coefficients.project()
+
+
+def test_the_correction_finds_a_term_of_a_form_the_prior_lacks_and_stays_small_where_nothing_is_missing() -> None:
+    """KS whose true system has a drift -0.2 u_x that no coefficient of the prior names: the correction's
+    first-derivative coefficient converges to -0.2; with the exact prior it stays near zero."""
+    rng = np.random.default_rng(0)
+    u = ks_initial_state_pool("train").states[rng.integers(0, 500, 256)]
+    a = rng.uniform(-0.5, 0.5, size=(256, 4))
+    for drift in (0.2, 0.0):
+        u1, _ = KuramotoSivashinsky(drift=drift).advance(u, a, np.zeros(256, dtype=np.int64))
+        residual = PhysicsResidual(KuramotoSivashinsky(), 5, learned={"correction": None})
+        _fit(residual, u, a, u1, 150)
+        assert residual.coefficients is not None
+        found = residual.coefficients.current()
+        assert set(found) == {"correction_u", "correction_u_x", "correction_u_xx", "correction_u_xxx", "correction_u_xxxx"}
+        if drift:
+            assert found["correction_u_x"] == pytest.approx(-drift, rel=0.05)
+        else:
+            assert abs(found["correction_u_x"]) < 0.01 and abs(found["correction_u"]) < 0.01
+
+
+def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
+    assert resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu,correction"})
+    with pytest.raises(ConfigError, match="applies to the PDE environments"):
+        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "correction"})
+    with pytest.raises(ValueError, match="takes no range"):
+        LearnedCoefficients(Burgers(), {"correction": (0.0, 1.0)})

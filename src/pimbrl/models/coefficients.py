@@ -23,13 +23,27 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numpy as np
 import torch
 
 from ..config import parse_learned, parse_prior
-from ..physics import Physics
+from ..physics import Physics, Stencil
 from ..physics.pde import SemilinearPDE
 
-__all__ = ["LearnedCoefficients", "parse_learned", "parse_prior"]
+__all__ = ["CORRECTION", "CORRECTION_NAMES", "LearnedCoefficients", "parse_learned", "parse_prior"]
+
+#: the name that adds the learned linear correction to the learned coefficients
+CORRECTION = "correction"
+#: second-order central differences of orders 0..4 (raw: divide by dx^j), the correction's basis
+CORRECTION_STENCILS = (
+    Stencil((0,), (1.0,), "I"),
+    Stencil.centered((-0.5, 0.0, 0.5), "D1"),
+    Stencil.centered((1.0, -2.0, 1.0), "D2"),
+    Stencil.centered((-0.5, 1.0, 0.0, -1.0, 0.5), "D3"),
+    Stencil.centered((1.0, -4.0, 6.0, -4.0, 1.0), "D4"),
+)
+#: how the correction's coefficients are reported: c_j of d^j u / dx^j
+CORRECTION_NAMES = ("correction_u", "correction_u_x", "correction_u_xx", "correction_u_xxx", "correction_u_xxxx")
 
 
 class LearnedCoefficients(torch.nn.Module):
@@ -42,12 +56,22 @@ class LearnedCoefficients(torch.nn.Module):
     damping term: prior 0, range ``0:1``) can start there. (A sigmoid would need hundreds of Adam steps to
     leave an edge: its logit starts far out.)
 
+    The name :data:`CORRECTION` adds a learned linear correction ``sum_j c_j d^j u / dx^j`` (``j = 0..4``,
+    second-order central differences) to the right-hand side, for what no named coefficient expresses (a
+    drift, a dispersion, a damping nobody named). It is part of the exactly-integrated linear operator
+    (complex eigenvalues for the odd orders), starts at zero, and its size is penalised
+    (``penalty * sum_j theta_j^2``, APHYNITY-style: the smallest correction that explains the data). Each
+    ``c_j = theta_j / (T max_k |sigma_j(k)|)`` with ``T`` the control step and ``sigma_j`` the stencil's
+    symbol: ``theta_j = 1`` changes the finest resolved mode by one e-fold (or one radian) per control step.
+
     Args:
         physics: the prior (its values are the starting point).
-        learned: name -> ``None`` (free) or ``(low, high)``, as returned by :func:`parse_learned`.
+        learned: name -> ``None`` (free) or ``(low, high)``, as returned by :func:`parse_learned`; the name
+            ``"correction"`` (no range) adds the linear correction.
+        penalty: weight of the correction's size in :meth:`penalty` (see above).
     """
 
-    def __init__(self, physics: Physics, learned: Mapping[str, tuple[float, float] | None]) -> None:
+    def __init__(self, physics: Physics, learned: Mapping[str, tuple[float, float] | None], penalty: float = 1e-6) -> None:
         super().__init__()
         if not isinstance(physics, SemilinearPDE):
             raise ValueError(
@@ -57,11 +81,13 @@ class LearnedCoefficients(torch.nn.Module):
         if not learned:
             raise ValueError("no coefficient to learn: name at least one (e.g. nu)")
         prior = physics.coefficient_values()
-        self.names = tuple(learned)
-        self.ranges = dict(learned)
+        self.ranges = {k: v for k, v in learned.items() if k != CORRECTION}
+        if CORRECTION in learned and learned[CORRECTION] is not None:
+            raise ValueError(f"the {CORRECTION} takes no range: give it as '{CORRECTION}'")
         self.prior = {}
+        self.penalty_weight = float(penalty)
         raw = []
-        for name in self.names:
+        for name in self.ranges:
             if name not in prior:
                 physics.with_coefficients(**{name: 0.0})  # raises the one-line error naming the known ones
             value = prior[name]
@@ -78,11 +104,23 @@ class LearnedCoefficients(torch.nn.Module):
                 raw.append((value - low) / (high - low))
             self.prior[name] = value
         self.theta = torch.nn.Parameter(torch.tensor(raw, dtype=torch.float64))
+        #: the linear correction's coefficients (``None``: no correction)
+        self.correction: torch.nn.Parameter | None = None
+        if CORRECTION in learned:
+            n, dx, modes = physics.n, physics.dx, physics.n // 2 + 1
+            symbols = np.stack([s.symbol(n)[:modes] / dx**j for j, s in enumerate(CORRECTION_STENCILS)])
+            scale = 1.0 / (physics.control_dt * np.abs(symbols).max(axis=1))
+            self._basis: torch.Tensor
+            self.register_buffer("_basis", torch.as_tensor(symbols * scale[:, None], dtype=torch.complex128))
+            self._scale = scale
+            self.correction = torch.nn.Parameter(torch.zeros(len(CORRECTION_STENCILS), dtype=torch.float64))
+        #: every learned quantity reported by :meth:`current`: the named coefficients, then the correction's
+        self.names = (*self.ranges, *(CORRECTION_NAMES if self.correction is not None else ()))
 
     def values(self) -> dict[str, torch.Tensor]:
         """The coefficients' current values (float64 tensors, differentiable in :attr:`theta`)."""
         out = {}
-        for i, name in enumerate(self.names):
+        for i, name in enumerate(self.ranges):
             bounds = self.ranges[name]
             if bounds is None:
                 prior = self.prior[name]
@@ -95,11 +133,26 @@ class LearnedCoefficients(torch.nn.Module):
     @torch.no_grad()
     def project(self) -> None:
         """Put every ranged coefficient back into its range (after an optimiser step)."""
-        for i, name in enumerate(self.names):
+        for i, name in enumerate(self.ranges):
             if self.ranges[name] is not None:
                 self.theta[i].clamp_(0.0, 1.0)
 
+    def correction_symbol(self) -> torch.Tensor | None:
+        """Eigenvalues of the linear correction on the rfft modes (complex128, differentiable), or ``None``."""
+        if self.correction is None:
+            return None
+        return (self.correction.to(torch.complex128)[:, None] * self._basis).sum(0)
+
+    def penalty(self) -> torch.Tensor:
+        """``penalty * sum_j theta_j^2`` of the correction (zero without one)."""
+        if self.correction is None:
+            return torch.zeros((), dtype=torch.float64)
+        return self.penalty_weight * self.correction.pow(2).sum()
+
     def current(self) -> dict[str, float]:
-        """The coefficients' current values as floats."""
+        """The coefficients' current values as floats, and the correction's ``c_j`` in physical units."""
         with torch.no_grad():
-            return {name: float(v) for name, v in self.values().items()}
+            out = {name: float(v) for name, v in self.values().items()}
+            if self.correction is not None:
+                out.update({n: float(t) * s for n, t, s in zip(CORRECTION_NAMES, self.correction, self._scale, strict=True)})
+            return out

@@ -61,7 +61,9 @@ class PhysicsResidual:
         scheme: ``"etd"`` or ``"solver"`` (see the module docstring).
         units: ``"substep"`` or ``"step"``: the units of the loss (see the module docstring).
         learned: coefficients of ``physics`` to learn (name -> ``None`` or ``(low, high)``; PDEs and the
-            ``"etd"`` scheme only); ``physics`` holds their starting values (the prior).
+            ``"etd"`` scheme only); ``physics`` holds their starting values (the prior). ``"correction"`` adds
+            a learned linear correction (:class:`~pimbrl.models.coefficients.LearnedCoefficients`).
+        correction_penalty: weight of the correction's size.
     """
 
     def __init__(
@@ -71,6 +73,7 @@ class PhysicsResidual:
         scheme: Scheme = "etd",
         units: str = "substep",
         learned: Mapping[str, tuple[float, float] | None] | None = None,
+        correction_penalty: float = 1e-6,
     ) -> None:
         if n_intermediate < 1:
             raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
@@ -104,7 +107,7 @@ class PhysicsResidual:
         if learned:
             if self._etd is None:
                 raise ValueError("learned coefficients need the etd residual (--dyna.residual etd), not the solver's")
-            self.coefficients = LearnedCoefficients(physics, learned)
+            self.coefficients = LearnedCoefficients(physics, learned, penalty=correction_penalty)
 
     def coarse_step(self, u: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
         """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``.
@@ -114,10 +117,14 @@ class PhysicsResidual:
         if self._etd is not None and self.coefficients is not None:
             pde = self._etd[0]
             values = self.coefficients.values()
+            correction = self.coefficients.correction_symbol()
             if not fit:
                 values = {k: v.detach() for k, v in values.items()}
+                correction = None if correction is None else correction.detach()
             lam, nonlinear_coef, shapes = pde.operators(values)
-            step = ETDRK4(lam, pde.n, self.h)
+            if correction is not None:
+                lam = torch.as_tensor(lam).to(torch.complex128) + correction
+            step = ETDRK4(torch.as_tensor(lam), pde.n, self.h)
             f = superpose(a, torch.as_tensor(shapes, dtype=u.dtype))  # keeps the gradient of a learned width
             coef = torch.as_tensor(nonlinear_coef, dtype=u.dtype)
             return step.step(u, lambda v: coef * pde.upwind(v) + f)
@@ -153,11 +160,15 @@ class PhysicsResidual:
         return torch.stack(states, dim=1)
 
     def coefficient_loss(self, u0: torch.Tensor, a: torch.Tensor, u1: torch.Tensor) -> torch.Tensor:
-        """Next-state error of the equation with the learned coefficients on labelled transitions (float64).
+        """Relative next-state error of the equation with the learned coefficients on labelled transitions.
 
-        ``mean((Phi_h^N(u0, a) - u1)^2)``: differentiable in the coefficients only (the inverse problem).
+        ``mean((Phi_h^N(u0, a) - u1)^2) / mean((u1 - u0)^2)`` (float64; the denominator, the no-change error,
+        makes it scale-free) plus the correction's penalty: differentiable in the coefficients only (the
+        inverse problem).
         """
         if self.coefficients is None:
             raise ValueError("this residual learns no coefficient")
         pred = self.rollout(u0.double(), a.double(), fit=True)[:, -1]
-        return self.physics.state_difference(pred, u1.double()).pow(2).mean()
+        error = self.physics.state_difference(pred, u1.double()).pow(2).mean()
+        scale = self.physics.state_difference(u1.double(), u0.double()).pow(2).mean().clamp_min(1e-30)
+        return error / scale + self.coefficients.penalty()

@@ -34,13 +34,14 @@ __all__ = ["ETDRK4", "SemilinearPDE"]
 class SemilinearPDE(Physics):
     """Base class of the periodic PDE systems.
 
-    Subclasses set, in ``__init__``: :attr:`n`, :attr:`x`,
+    Subclasses set, in ``__init__``: :attr:`n`, :attr:`x`, :attr:`dx`,
     :attr:`linear`, :attr:`nonlinear_coef`, :attr:`actuator_shapes`, :attr:`method` and the
     :class:`Physics` attributes, and implement :meth:`upwind` and :meth:`kernel_spec`.
     """
 
     n: int
     x: np.ndarray
+    dx: float
     linear: Stencil
     # u_t = L u - c (u^2)_x + f on a periodic grid: a circular shift maps solutions to solutions, and so does
     # u(x) -> -u(-x) (L holds even derivatives only); KS's discrete scheme keeps the reflection exactly (tested),

@@ -143,7 +143,11 @@ class DynaConfig:
     learn_coefficients: str = param(
         "",
         "pimbrl, PDEs: coefficients of the physics loss fitted to the labelled transitions, comma-separated, "
-        "each name or name:low:high (e.g. nu or damping:0:1), starting from the prior's values",
+        "each name or name:low:high (e.g. nu or damping:0:1), starting from the prior's values; 'correction' adds "
+        "a learned linear correction for what no coefficient expresses",
+    )
+    correction_penalty: float = param(
+        1e-6, "pimbrl: weight of the learned correction's size (sum of its squared scaled coefficients)", non_negative()
     )
     coefficient_lr: float = param(1e-2, "pimbrl: Adam learning rate of the learned coefficients", [positive(), at_most(MAX_LR)])
     reward_quadrature: str = param(
@@ -282,8 +286,17 @@ PIMBRL_ONLY = (
     "physics_start",
     "learn_coefficients",
     "coefficient_lr",
+    "correction_penalty",
 )
-PDE_ONLY = ("n_intermediate", "residual", "model", "reward_quadrature", "learn_coefficients", "coefficient_lr")
+PDE_ONLY = (
+    "n_intermediate",
+    "residual",
+    "model",
+    "reward_quadrature",
+    "learn_coefficients",
+    "coefficient_lr",
+    "correction_penalty",
+)
 
 
 def _flag(path: str) -> str:
@@ -534,7 +547,8 @@ def check_coefficients(cfg: TrainConfig) -> None:
         return
     names = physics_coefficient_names(cfg.env)
     for field, given in (("dyna.physics_prior", prior), ("dyna.learn_coefficients", learned)):
-        bad = [name for name in given if name not in names]
+        allowed = (*names, "correction") if field == "dyna.learn_coefficients" else names
+        bad = [name for name in given if name not in allowed]
         if bad:
             raise ConfigError(
                 f"{field}: {cfg.env} has no coefficient {bad[0]!r}{did_you_mean(bad[0], names)}; "

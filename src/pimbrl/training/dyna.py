@@ -91,7 +91,12 @@ class DynaModel:
         scheme: Scheme = "solver" if d.residual == "solver" else "etd"
         residual = (
             PhysicsResidual(
-                self.physics, self.model.n_intermediate, scheme, d.residual_units, learned=parse_learned(d.learn_coefficients)
+                self.physics,
+                self.model.n_intermediate,
+                scheme,
+                d.residual_units,
+                learned=parse_learned(d.learn_coefficients),
+                correction_penalty=d.correction_penalty,
             )
             if cfg.method == "pimbrl"
             else None
@@ -286,6 +291,7 @@ class DynaModel:
             "environment": self.task.physics.coefficient_values(),
             "prior": self.physics.coefficient_values(),
             "learned": {} if learned is None else {n: list(r) if r else None for n, r in learned.ranges.items()},
+            "correction": learned is not None and learned.correction is not None,
             "current": self.learned_coefficients(),
             "history": self.coefficient_history,
         }
