@@ -41,3 +41,27 @@ def test_extending_to_fewer_steps_is_a_one_line_error(tmp_path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--total-steps 200 must be larger than the run's total_steps 300" in err[0]
     assert (run / "config.json").read_text() == before
+
+
+def test_wall_clock_to_threshold_is_the_training_time_of_the_first_evaluation_at_it() -> None:
+    from pimbrl.training.rundir import wall_s_to_threshold
+
+    rows = [
+        {"step": "100", "return_mean": "-300.0", "wall_s": "5.0"},
+        {"step": "200", "return_mean": "-150.0", "wall_s": "9.5"},
+        {"step": "300", "return_mean": "-140.0", "wall_s": "14.0"},
+    ]
+    assert wall_s_to_threshold(rows, -200.0) == 9.5
+    assert wall_s_to_threshold(rows, -100.0) is None
+    assert wall_s_to_threshold(rows, None) is None
+
+
+def test_a_finished_run_reports_wall_clock_to_its_threshold(tmp_path) -> None:
+    run = tmp_path / "run"
+    args = [*_for_method(DYNA_SMOKE["pendulum"], "mbrl"), *TINY, *SMALL_MODEL, "--method", "mbrl", "--threshold=-1e9"]
+    assert main(["train", "pendulum", "--run-dir", str(run), *args]) == 0
+    result = RunDirectory(run).result()
+    assert result is not None
+    first = RunDirectory(run).evaluations.read()[0]
+    assert result["steps_to_threshold"] == int(first["step"])
+    assert result["wall_s_to_threshold"] == float(first["wall_s"]) > 0

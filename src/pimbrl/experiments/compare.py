@@ -386,6 +386,7 @@ def summarize_method(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "reached": len(reached),
         "steps_to_threshold_mean": float(np.mean(reached)) if len(reached) == len(mine) and reached else None,
         "steps_to_threshold": [r["steps_to_threshold"] for r in mine],
+        "wall_s_to_threshold": [r.get("wall_s_to_threshold") for r in mine],
         # a run that never reached the threshold needed more than its budget: the mean with those runs
         # counted at their budget is a lower bound on the mean steps to the threshold
         "steps_to_threshold_lower_bound": float(
@@ -416,17 +417,19 @@ def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
 
 def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
     """``summary.csv``, ``summary.json`` and ``curves.png`` in ``root``."""
-    lines = ["method,seed,steps_to_threshold,final_return,best_return,wall_s,updates,update_to_data"]
+    lines = ["method,seed,steps_to_threshold,wall_s_to_threshold,final_return,best_return,wall_s,updates,update_to_data"]
     for r in result["runs"]:
         s2t = "" if r["steps_to_threshold"] is None else r["steps_to_threshold"]
+        w2t = "" if r.get("wall_s_to_threshold") is None else f"{r['wall_s_to_threshold']:.1f}"
         lines.append(
-            f"{r['method']},{r['seed']},{s2t},{r['final_return']!r},{r['best_return']!r},{r['wall_s']:.1f},{r['updates']},{r['update_to_data']:.3f}"
+            f"{r['method']},{r['seed']},{s2t},{w2t},{r['final_return']!r},{r['best_return']!r},{r['wall_s']:.1f},"
+            f"{r['updates']},{r['update_to_data']:.3f}"
         )
     for label, m in result["methods"].items():
         s2t = m["steps_to_threshold_mean"]
         if s2t is None:  # some runs never reached it: a lower bound, written as ">=N"
             s2t = f">={m['steps_to_threshold_lower_bound']:.0f}" if m["reached"] else ""
-        lines.append(f"{label},mean,{s2t},{m['final_return_mean']!r},,{m['wall_s_mean']:.1f},,{m['update_to_data']:.3f}")
+        lines.append(f"{label},mean,{s2t},,{m['final_return_mean']!r},,{m['wall_s_mean']:.1f},,{m['update_to_data']:.3f}")
     atomic_write_bytes(root / "summary.csv", ("\n".join(lines) + "\n").encode())
     slim = {**result, "runs": [{k: v for k, v in r.items() if k != "curve"} for r in result["runs"]], "env": env_id}
     atomic_write_bytes(root / "summary.json", (json.dumps(slim, indent=2) + "\n").encode())

@@ -160,6 +160,14 @@ def steps_to_threshold(evaluations: list[dict[str, Any]], threshold: float | Non
     return None
 
 
+def wall_s_to_threshold(evaluations: list[dict[str, Any]], threshold: float | None) -> float | None:
+    """Training wall-clock (seconds) at the first evaluation whose mean return reaches ``threshold``."""
+    step = steps_to_threshold(evaluations, threshold)
+    if step is None:
+        return None
+    return next(float(r["wall_s"]) for r in evaluations if int(float(r["step"])) == step)
+
+
 def package_versions() -> dict[str, str]:
     """Versions of Python, pimbrl and its main dependencies, recorded in a run's configuration file."""
     import gymnasium
@@ -386,8 +394,8 @@ class RunDirectory:
     def result(self, threshold: float | None = None) -> dict[str, Any] | None:
         """What a run has reached so far (``None`` without evaluations).
 
-        That is its steps, steps to ``threshold`` (default: the run's own), final and best mean test
-        return, wall-clock, updates and its curves.
+        That is its steps, steps to ``threshold`` (default: the run's own) and the training wall-clock at which
+        it was first reached, final and best mean test return, wall-clock, updates and its curves.
         """
         if self.status is None:
             return None
@@ -404,6 +412,7 @@ class RunDirectory:
             "finished": payload.get("status") == "finished",
             "steps": steps,
             "steps_to_threshold": steps_to_threshold(rows, threshold),
+            "wall_s_to_threshold": wall_s_to_threshold(rows, threshold),
             "final_return": float(rows[-1]["return_mean"]),
             "best_return": max(float(r["return_mean"]) for r in rows),
             "wall_s": float(summary.get("wall_s", rows[-1]["wall_s"])),
