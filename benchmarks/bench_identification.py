@@ -77,6 +77,7 @@ def identify(
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+        residual.coefficients.project()  # ranged coefficients back into their range, as in training
     return residual.coefficients.current(), time.perf_counter() - t0
 
 
@@ -113,7 +114,7 @@ def main() -> None:
                 f"{name:>24}  {n:>5} labels  relative error {min(errors):.2%} .. {max(errors):.2%} "
                 f"(median {statistics.median(errors):.2%}) over {len(seeds)} seeds"
             )
-    _common.record("identification", {"fit_steps": args.fit_steps, "lr": args.lr, "labels": labels, "seeds": seeds, "rows": rows})
+    _common.record(args.name, {"fit_steps": args.fit_steps, "lr": args.lr, "labels": labels, "seeds": seeds, "rows": rows})
 
 
 if __name__ == "__main__":

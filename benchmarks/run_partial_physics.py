@@ -51,11 +51,28 @@ def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
     raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
 
 
+#: a true term a learned correction stands for: (the correction's coefficient, its sign against the term)
+CORRECTION_OF = {"drift": ("correction_u_x", -1.0), "damping": ("correction_u", -1.0)}
+
+
 def identified_within(history: list[dict], truth: dict[str, float], tolerance: float = 0.05) -> int | None:
-    """First real step from which every learned coefficient stays within ``tolerance`` of the truth."""
+    """First real step from which every learned coefficient stays within ``tolerance`` of the truth.
+
+    A true term learned through the correction is compared with the correction's coefficient of the same
+    form (a drift ``c`` with ``-correction_u_x``). ``None`` where nothing learned can be compared.
+    """
+    pairs = []
+    for name, value in truth.items():
+        if history and name in history[0]:
+            pairs.append((name, value))
+        elif history and name in CORRECTION_OF and CORRECTION_OF[name][0] in history[0]:
+            column, sign = CORRECTION_OF[name]
+            pairs.append((column, sign * value))
+    if not pairs:
+        return None
     first = None
     for row in history:
-        ok = all(abs(row[name] - value) <= tolerance * abs(value) for name, value in truth.items() if name in row)
+        ok = all(abs(row[name] - value) <= tolerance * abs(value) for name, value in pairs)
         if ok and first is None:
             first = int(row["step"])
         elif not ok:
@@ -79,6 +96,11 @@ def main() -> None:
     parser.add_argument("--no-run", action="store_true", help="summarise the runs as they are")
     args, extra = parser.parse_known_args()
     extra = [a for a in extra if a != "--"]
+    truth = parse_prior(args.true)
+    missing = [name for name in truth if name not in parse_prior(args.prior)]
+    if missing:  # the prior would inherit the environment's true value of these
+        raise SystemExit(f"--prior must give a value for every coefficient of --true; missing: {', '.join(missing)}")
+
     out = Path(args.out_dir)
     seeds = [int(s) for s in args.seeds.split(",")]
     thresholds = [float(t) for t in args.thresholds.split(",")]

@@ -9,6 +9,7 @@ import torch
 
 import pimbrl  # noqa: F401 - registers the environments
 from pimbrl.envs import BurgersTask, ks_initial_state_pool
+from pimbrl.models import PhysicsResidual
 from pimbrl.physics import Burgers, KuramotoSivashinsky
 from pimbrl.physics.pde import ETDRK4, SemilinearPDE
 
@@ -89,14 +90,28 @@ def test_bad_coefficients_are_one_line_errors() -> None:
         Burgers().with_coefficients(nuu=0.01)
     with pytest.raises(ValueError, match="must be a finite number"):
         Burgers().with_coefficients(nu=float("nan"))
-    with pytest.raises(
-        ValueError, match=r"unstable \(it amplifies a mode 1.4 times more than the equation, per step\); give a smaller dt"
-    ):
-        Burgers(nu=0.02)
-    with pytest.raises(ValueError, match="hyper_diffusion must be > 0"):
+    with pytest.raises(ValueError, match="burgers: nu must be a finite number >= 0, got nan"):
+        Burgers(nu=float("nan"))
+    with pytest.raises(ValueError, match="ks: drift must be a finite number, got inf"):
+        KuramotoSivashinsky(drift=float("inf"))
+    with pytest.raises(ValueError, match="ks: hyper_diffusion must be a finite number > 0"):
         KuramotoSivashinsky(hyper_diffusion=0.0)
-    with pytest.raises(ValueError, match="actuator_width must be > 0"):
+    with pytest.raises(ValueError, match="burgers: actuator_width must be a finite number > 0"):
         Burgers(actuator_width=0.0)
+    # an unstable explicit solver step: refused by the environment (and by the simulator, at its first use),
+    # not by the physics object, which a prior may hold without ever stepping it explicitly
+    unstable = r"unstable \(it amplifies a mode 1.4 times more than the equation, per step\); give a smaller dt"
+    prior = Burgers(nu=0.02)
+    with pytest.raises(ValueError, match=unstable):
+        BurgersTask(nu=0.02)
+    with pytest.raises(ValueError, match=unstable):
+        prior.advance(np.full((1, prior.n), 0.5), np.zeros((1, 2)), np.zeros(1, dtype=np.int64))
+    with pytest.raises(ValueError, match=unstable):
+        PhysicsResidual(prior, 5, scheme="solver")
+    PhysicsResidual(prior, 5)  # the exponential scheme is stable for any coefficients
+    assert Burgers().with_coefficients() is not None
+    default = Burgers()
+    assert default.with_coefficients() is default  # nothing to change: the object itself
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+import pytest
+import torch
+
 from pimbrl.cli import main
 from pimbrl.training import RunDirectory
 
@@ -65,3 +69,30 @@ def test_a_finished_run_reports_wall_clock_to_its_threshold(tmp_path) -> None:
     first = RunDirectory(run).evaluations.read()[0]
     assert result["steps_to_threshold"] == int(first["step"])
     assert result["wall_s_to_threshold"] == float(first["wall_s"]) > 0
+
+
+def _filled(capacity: int, n: int):
+    from pimbrl.buffers import ReplayBuffer
+
+    buf = ReplayBuffer(capacity, 2, 1)
+    for i in range(n):
+        buf.add(np.full(2, i), np.full(1, i), float(i), np.full(2, i + 1), False, False)
+    return buf
+
+
+def test_a_buffer_that_never_wrapped_grows_into_a_larger_one_in_order() -> None:
+    small = _filled(5, 5)  # full, never overwritten: pos wrapped to 0
+    big = _filled(8, 0)
+    big.load_state_dict(small.state_dict())
+    assert (big.size, big.pos, big.capacity) == (5, 5, 8)
+    big.add(np.full(2, 5), np.full(1, 5), 5.0, np.full(2, 6), False, False)
+    reference = _filled(8, 6)
+    for name in ("obs", "action", "reward", "next_obs"):
+        assert torch.equal(getattr(big, name)[:6], getattr(reference, name)[:6])
+    assert (big.size, big.pos) == (reference.size, reference.pos)
+
+
+def test_a_buffer_that_overwrote_entries_does_not_grow() -> None:
+    wrapped = _filled(5, 7)
+    with pytest.raises(ValueError, match="capacity 5 differs from 8"):
+        _filled(8, 0).load_state_dict(wrapped.state_dict())

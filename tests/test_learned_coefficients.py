@@ -14,7 +14,7 @@ from pimbrl.envs import ks_initial_state_pool
 from pimbrl.models import ModelTrainer, PhysicsResidual, make_model
 from pimbrl.models.coefficients import LearnedCoefficients
 from pimbrl.physics import Burgers, KuramotoSivashinsky, Pendulum
-from pimbrl.training import resolve_config
+from pimbrl.training import RunDirectory, resolve_config
 
 from .test_dyna import DYNA_SMOKE, SMALL_MODEL
 from .test_training import TINY
@@ -205,3 +205,51 @@ def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
         resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "correction"})
     with pytest.raises(ValueError, match="takes no range"):
         LearnedCoefficients(Burgers(), {"correction": (0.0, 1.0)})
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"env_kwargs": {"nu": 0.013}, "dyna.learn_coefficients": "nu"}, "nu would start from the environment's true value"),
+        ({"dyna.coefficient_lr": 0.05}, "--dyna.coefficient-lr does nothing without --dyna.learn-coefficients"),
+        ({"dyna.learn_coefficients": "nu", "dyna.correction_penalty": 1.0}, "does nothing without 'correction'"),
+        ({"dyna.learn_coefficients": "nu,nu:0:1"}, "nu is given twice"),
+        ({"dyna.physics_prior": "nu=-1"}, "physics prior: burgers: nu must be a finite number >= 0, got -1.0"),
+        ({"dyna.physics_prior": "damping=0.5", "dyna.learn_coefficients": "damping:0:0.1"}, "lies outside its range"),
+    ],
+)
+def test_every_coefficient_problem_is_refused_before_anything_runs(fields: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", **fields})
+
+
+def test_a_positive_free_coefficient_cannot_cross_zero() -> None:
+    learned = LearnedCoefficients(Burgers(), {"nu": None})
+    with torch.no_grad():
+        learned.theta.fill_(-5.0)  # nu = 0.01 - 0.05 < 0
+    learned.project()
+    assert learned.current()["nu"] == pytest.approx(1e-4)  # 1 % of the prior
+
+
+def test_a_run_with_learned_coefficients_continues_bit_for_bit(tmp_path) -> None:
+    """Trained to an episode boundary, then extended: the same files and coefficients as one longer run."""
+    args = [
+        *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl",
+        "--env-kwargs", '{"nu": 0.013}', "--dyna.physics-prior", "nu=0.01", "--dyna.learn-coefficients", "nu,correction",
+    ]  # fmt: skip
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    assert main(["train", "burgers", "--run-dir", str(whole), *args]) == 0  # 180 steps: 3 episodes
+    assert main(["train", "burgers", "--run-dir", str(cut), *args, "--steps", "120"]) == 0
+    assert main(["resume", str(cut), "--total-steps", "180", "--quiet"]) == 0
+
+    def table(path, name: str) -> list[dict]:
+        d = RunDirectory(path)
+        rows = (
+            d.evaluations.read() if name == "evaluations" else d.episodes.read() if name == "episodes" else d.metrics([]).read()
+        )
+        return [{k: v for k, v in r.items() if "wall" not in k and "time/" not in k and "per_s" not in k} for r in rows]
+
+    for name in ("evaluations", "episodes", "metrics"):
+        assert table(whole, name) == table(cut, name), name
+    history = [json.loads((p / "coefficients.json").read_text())["history"] for p in (whole, cut)]
+    assert history[0] == history[1] and len(history[0]) >= 2

@@ -397,6 +397,8 @@ def parse_prior(spec: str) -> dict[str, float]:
         name, eq, value = item.partition("=")
         if not eq or not name.strip():
             raise ConfigError(f"physics prior {spec!r}: each item is name=value (e.g. nu=0.007), got {item!r}")
+        if name.strip() in out:
+            raise ConfigError(f"physics prior {spec!r}: {name.strip()} is given twice")
         out[name.strip()] = _coefficient_number(value.strip(), f"physics prior {name.strip()}")
     return out
 
@@ -408,6 +410,8 @@ def parse_learned(spec: str) -> dict[str, tuple[float, float] | None]:
         if not item:
             continue
         parts = [p.strip() for p in item.split(":")]
+        if parts[0] in out:
+            raise ConfigError(f"learned coefficients {spec!r}: {parts[0]} is given twice")
         if len(parts) == 1:
             out[parts[0]] = None
         elif len(parts) == 3:

@@ -22,7 +22,7 @@ class BurgersTask(Task):
         divergence_penalty: reward of a step that blows up, a finite number (default -100; any whole episode returns
             more than about -60).
         **coefficients: physical coefficients of :class:`pimbrl.physics.Burgers` that differ from the paper's
-            (``nu``, ``convection``, ``damping``, ``actuator_width``), e.g. ``nu=0.013``: a system whose
+            (``nu``, ``convection``, ``damping``, ``actuator_width``, ``drift``), e.g. ``nu=0.013``: a system whose
             physics a prior may get wrong (docs/partial-physics.md).
     """
 
@@ -33,6 +33,7 @@ class BurgersTask(Task):
 
     def __init__(self, divergence_penalty: float = -100.0, **coefficients: float) -> None:
         self.physics = Burgers(episode_steps=self.max_episode_steps).with_coefficients(**coefficients)
+        self.physics.check_stability()  # a one-line error now rather than at the first step
         self.divergence_penalty = check_finite_number(divergence_penalty, "divergence_penalty")
         bound = np.float32(self.physics.divergence_bound + 1.0)
         self.observation_space = spaces.Box(-bound, bound, shape=(self.physics.n,), dtype=np.float32)
@@ -105,7 +106,8 @@ _DOC = """Viscous Burgers reference tracking with two actuators (Liu & Wang 2021
 
     ## Arguments
     ``divergence_penalty`` (a finite number); the physical coefficients ``nu`` (0.01), ``convection`` (1),
-    ``damping`` (0: a term ``-mu u`` added to the right-hand side) and ``actuator_width`` (1/15), e.g.
+    ``damping`` (0: a term ``-mu u`` added to the right-hand side), ``actuator_width`` (1/15) and ``drift`` (0: a
+    term ``-c u_xi``), e.g.
     ``gym.make("pimbrl/Burgers-v0", nu=0.013)``.
 
     ## Version History

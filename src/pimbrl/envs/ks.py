@@ -29,7 +29,7 @@ class KSTask(Task):
             is below 100).
         **coefficients: physical coefficients of :class:`pimbrl.physics.KuramotoSivashinsky` that differ from
             the paper's (``anti_diffusion``, ``hyper_diffusion``, ``convection``, ``damping``,
-            ``actuator_width``), e.g. ``convection=1.3``. The initial-state pools are drawn from the paper's
+            ``actuator_width``, ``drift``), e.g. ``convection=1.3``. The initial-state pools are drawn from the paper's
             system whatever the coefficients.
     """
 
@@ -51,6 +51,7 @@ class KSTask(Task):
         self.physics = KuramotoSivashinsky(
             reward=reward, periodic_actuators=check_bool(periodic_actuators, "periodic_actuators")
         ).with_coefficients(**coefficients)
+        self.physics.check_stability()  # a one-line error now rather than at the first step
         self.divergence_penalty = check_finite_number(divergence_penalty, "divergence_penalty")
         if pool_config is not None and not isinstance(pool_config, (KSPoolConfig, dict)):
             raise TypeError(f"pool_config must be a KSPoolConfig or a dict of its fields, got {pool_config!r}")
@@ -160,8 +161,8 @@ _DOC = """Kuramoto-Sivashinsky chaos suppression with four actuators (Liu & Wang
     ## Arguments
     ``reward``, ``periodic_actuators`` (a bool), ``initial_states``, ``pool_config``, ``divergence_penalty``
     (see :class:`pimbrl.envs.ks.KSTask`); the physical coefficients ``anti_diffusion``, ``hyper_diffusion``,
-    ``convection`` (1 each), ``damping`` (0: a term ``-mu u`` added to the right-hand side) and
-    ``actuator_width`` (1), e.g. ``gym.make("pimbrl/KuramotoSivashinsky-v0", convection=1.3)``.
+    ``convection`` (1 each), ``damping`` (0: a term ``-mu u`` added to the right-hand side), ``actuator_width``
+    (1) and ``drift`` (0: a term ``-c u_x``), e.g. ``gym.make("pimbrl/KuramotoSivashinsky-v0", convection=1.3)``.
 
     ## Version History
     * v0: initial version, numerics of the authors' code (docs/environments.md, section

@@ -38,6 +38,7 @@ from ..config import parse_learned, parse_prior
 from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
+from ..models.coefficients import LearnedCoefficients
 from ..models.residual import Scheme
 from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
 from ..physics import Physics
@@ -160,6 +161,16 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     task = env.unwrapped.task
     prior = task.physics.with_coefficients(**parse_prior(cfg.physics_prior))
     learned = parse_learned(cfg.learn_coefficients)
+    if learned:  # every problem now, before any model is trained
+        leaked = [n for n in learned if n in env_kwargs and n not in parse_prior(cfg.physics_prior)]
+        if leaked:
+            raise ValueError(
+                f"learn_coefficients: {leaked[0]} would start from the environment's true value; "
+                f"give the believed one with --physics-prior {leaked[0]}=..."
+            )
+        if cfg.scheme != "etd":
+            raise ValueError("learn_coefficients needs the etd residual (--scheme etd)")
+        LearnedCoefficients(prior, learned)
     variants: dict[str, tuple[Physics, dict]] = {"physics": (prior, {})}
     if cfg.physics_prior:
         variants["physics-true"] = (task.physics, {})

@@ -6,7 +6,7 @@ wrote down), the residual can be built from a *prior* whose coefficients differ 
 of those coefficients can be *learned*:
 
 * a learned coefficient is a trainable scalar of the residual, initialised at the prior's value, free or
-  confined to a range ``[low, high]`` (through a sigmoid);
+  confined to a range ``[low, high]`` (by projection after every step);
 * it is fitted to the labelled transitions by the coarse scheme of the residual itself: the loss is the
   next-state error of ``N`` exponential steps of the equation with the current coefficients from each
   labelled state and action. Only labelled transitions carry information about the coefficients: on a
@@ -50,7 +50,9 @@ class LearnedCoefficients(torch.nn.Module):
     """Trainable physical coefficients of a PDE's residual, initialised at the prior's values.
 
     A free coefficient is ``prior + scale * theta`` with ``scale = |prior|`` (1 where the prior is 0), so that
-    Adam's steps are relative changes whatever the coefficient's units; a ranged one is
+    Adam's steps are relative changes whatever the coefficient's units, kept by projection at or above 1 % of
+    a positive prior (a viscosity, a width cannot cross zero, where the equation's step would overflow); a
+    ranged one is
     ``low + (high - low) * theta`` with ``theta`` projected back into ``[0, 1]`` after every step
     (:meth:`project`), so that its steps are fractions of the range and a prior on the range's edge (a missing
     damping term: prior 0, range ``0:1``) can start there. (A sigmoid would need hundreds of Adam steps to
@@ -132,10 +134,12 @@ class LearnedCoefficients(torch.nn.Module):
 
     @torch.no_grad()
     def project(self) -> None:
-        """Put every ranged coefficient back into its range (after an optimiser step)."""
+        """Put every ranged coefficient back into its range, and keep positive ones positive (after a step)."""
         for i, name in enumerate(self.ranges):
             if self.ranges[name] is not None:
                 self.theta[i].clamp_(0.0, 1.0)
+            elif self.prior[name] > 0:  # prior + prior * theta >= prior / 100
+                self.theta[i].clamp_(min=-0.99)
 
     def correction_symbol(self) -> torch.Tensor | None:
         """Eigenvalues of the linear correction on the rfft modes (complex128, differentiable), or ``None``."""

@@ -98,6 +98,8 @@ class PhysicsResidual:
                 f"per control step, got {self.n}"
             )
         self.scheme: Scheme = scheme
+        if pde is not None and scheme == "solver":
+            pde.check_stability()  # the solver's own step: it must be stable with the prior's coefficients
         # the PDE (typed as such) and its exponential integrator, for the "etd" scheme
         self._etd: tuple[SemilinearPDE, ETDRK4] | None = (
             (pde, pde.etdrk4(self.n)) if (pde is not None and scheme == "etd") else None

@@ -116,6 +116,8 @@ class Physics(ABC):
     def with_coefficients(self: PhysicsT, **values: float) -> PhysicsT:
         """The same system with some physical coefficients changed; every other setting is kept.
 
+        With no values, this object itself.
+
         Raises:
             ValueError: for a name that is not one of :attr:`coefficients`, or a value that is not a finite
                 number.
@@ -128,6 +130,8 @@ class Physics(ABC):
                 raise ValueError(f"{self.name} has no coefficient {name!r}{hint}; its coefficients are: {known}")
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"{self.name}: coefficient {name} must be a finite number, got {value!r}")
+        if not values:
+            return self
         if not hasattr(self, "_arguments"):
             raise TypeError(f"{type(self).__name__}.__init__ is not decorated with @records_arguments")
         return type(self)(**{**self._arguments, **{k: float(v) for k, v in values.items()}})

@@ -16,7 +16,7 @@ from typing import Any, overload
 import numpy as np
 import torch
 
-from .base import Array, records_arguments, xp_of
+from .base import Array, check_coefficient, records_arguments, xp_of
 from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil
@@ -81,10 +81,12 @@ class Burgers(SemilinearPDE):
     ) -> None:
         if n < 5:
             raise ValueError(f"Burgers needs at least 5 grid points, got n={n}")
-        if nu < 0 or dt <= 0 or substeps < 1:
-            raise ValueError(f"need nu >= 0, dt > 0, substeps >= 1; got nu={nu}, dt={dt}, substeps={substeps}")
-        if not actuator_width > 0:
-            raise ValueError(f"actuator_width must be > 0, got {actuator_width}")
+        if dt <= 0 or substeps < 1:
+            raise ValueError(f"need dt > 0, substeps >= 1; got dt={dt}, substeps={substeps}")
+        nu = check_coefficient(self.name, "nu", nu, nonnegative=True)
+        actuator_width = check_coefficient(self.name, "actuator_width", actuator_width, positive=True)
+        for name, value in (("convection", convection), ("damping", damping), ("drift", drift)):
+            check_coefficient(self.name, name, value)
         self.n = int(n)
         self.dx = 1.0 / self.n
         self.nu = float(nu)
@@ -115,7 +117,6 @@ class Burgers(SemilinearPDE):
         self.nonlinear_coef = -self.convection / (2.0 * self.dx)
         self.method = "euler"
         self._kernel: PDEKernel | None = None
-        self._check_stability()
 
     def _shapes(self, width: Any) -> Any:
         xp = xp_of(width)

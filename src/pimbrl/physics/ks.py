@@ -19,7 +19,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from .base import Array, records_arguments, xp_of
+from .base import Array, check_coefficient, records_arguments, xp_of
 from .kernels import PDEKernel, PDEKernelSpec
 from .pde import SemilinearPDE
 from .stencil import Stencil, apply_upwind
@@ -97,10 +97,15 @@ class KuramotoSivashinsky(SemilinearPDE):
             raise ValueError(f"reward must be 'code' or 'physical', got {reward!r}")
         if dt <= 0 or substeps < 1:
             raise ValueError(f"need dt > 0 and substeps >= 1, got dt={dt}, substeps={substeps}")
-        if not hyper_diffusion > 0:
-            raise ValueError(f"hyper_diffusion must be > 0 (without it the equation blows up), got {hyper_diffusion}")
-        if not actuator_width > 0:
-            raise ValueError(f"actuator_width must be > 0, got {actuator_width}")
+        hyper_diffusion = check_coefficient(self.name, "hyper_diffusion", hyper_diffusion, positive=True)
+        actuator_width = check_coefficient(self.name, "actuator_width", actuator_width, positive=True)
+        for name, value in (
+            ("anti_diffusion", anti_diffusion),
+            ("convection", convection),
+            ("damping", damping),
+            ("drift", drift),
+        ):
+            check_coefficient(self.name, name, value)
         self.n = int(n)
         self.length = float(length)
         self.dx = self.length / self.n
@@ -144,7 +149,6 @@ class KuramotoSivashinsky(SemilinearPDE):
             self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
         self.method = "rk4"
         self._kernel: PDEKernel | None = None  # compiled on first use
-        self._check_stability()
 
     def _shapes(self, width: Any) -> Any:
         dist: Any = self.x[None, :] - self.actuator_centres[:, None]

@@ -71,7 +71,7 @@ class SemilinearPDE(Physics):
     def _coefficient(self, values: Mapping[str, Any], name: str) -> Any:
         return values.get(name, getattr(self, name))
 
-    def _check_stability(self) -> None:
+    def check_stability(self) -> None:
         """Refuse coefficients for which the explicit solver step amplifies a mode of the linear part.
 
         The amplification factor of one step, ``R(dt lambda)`` (explicit Euler ``1 + z``, classic RK4 its
@@ -82,7 +82,7 @@ class SemilinearPDE(Physics):
         factor = 1 + z if self.method == "euler" else 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
         excess = np.abs(factor) / np.maximum(1.0, np.abs(np.exp(z)))
         worst = float(np.max(excess))
-        if worst > 1 + 1e-6:
+        if not worst <= 1 + 1e-6:  # (also catches NaN)
             raise ValueError(
                 f"{self.name}: with these coefficients the {self.method} solver step is unstable (it amplifies "
                 f"a mode {worst:.3g} times more than the equation, per step); give a smaller dt (and more substeps)"
@@ -147,6 +147,7 @@ class SemilinearPDE(Physics):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One control step of the compiled kernel for a batch: ``(u_next, terms, reward)``."""
         if self._kernel is None:
+            self.check_stability()
             self._kernel = build_pde_kernel(self.kernel_spec())
         u = np.ascontiguousarray(u, dtype=np.float64)
         a = np.ascontiguousarray(a, dtype=np.float64)
@@ -192,7 +193,7 @@ class ETDRK4:
 
     Args:
         linear: the periodic linear stencil ``L`` (its Fourier symbol gives the exact eigenvalues), or the
-            real eigenvalues of ``L`` on the ``n // 2 + 1`` rfft modes directly: a NumPy array, or a torch
+            eigenvalues of ``L`` (real, or complex for a non-symmetric stencil) on the ``n // 2 + 1`` rfft modes directly: a NumPy array, or a torch
             tensor (then the step is differentiable in them, for coefficients that are being learned).
         n: number of grid points.
         h: step size.

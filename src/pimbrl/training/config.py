@@ -539,10 +539,22 @@ def physics_coefficient_names(env: str) -> tuple[str, ...]:
 
 
 def check_coefficients(cfg: TrainConfig) -> None:
-    """A clear :class:`ConfigError` for a ``dyna.physics_prior`` or ``dyna.learn_coefficients`` that cannot work."""
+    """A clear :class:`ConfigError` for a physics prior or learned coefficients that cannot work.
+
+    Checked before anything runs: names, values (the prior is built), learned coefficients whose starting
+    value would be the environment's true one (given in ``env_kwargs`` but not in the prior), the learning
+    settings without anything learned, the residual scheme.
+    """
     d = cfg.dyna
     prior = parse_prior(d.physics_prior)
     learned = parse_learned(d.learn_coefficients) if cfg.method == "pimbrl" else {}
+    if cfg.method == "pimbrl" and not learned:
+        defaults = DynaConfig()
+        for name in ("coefficient_lr", "correction_penalty"):
+            if getattr(d, name) != getattr(defaults, name):
+                raise ConfigError(f"{_flag('dyna.' + name)} does nothing without --dyna.learn-coefficients")
+    if learned and "correction" not in learned and d.correction_penalty != DynaConfig().correction_penalty:
+        raise ConfigError("--dyna.correction-penalty does nothing without 'correction' in --dyna.learn-coefficients")
     if not prior and not learned:
         return
     names = physics_coefficient_names(cfg.env)
@@ -556,6 +568,20 @@ def check_coefficients(cfg: TrainConfig) -> None:
             )
     if learned and d.residual != "etd":
         raise ConfigError("dyna.learn_coefficients needs the etd residual (--dyna.residual etd), not the solver's")
+    leaked = [name for name in learned if name in cfg.env_kwargs and name not in prior]
+    if leaked:
+        raise ConfigError(
+            f"dyna.learn_coefficients: {leaked[0]} would start from the environment's true value (given in "
+            f"--env-kwargs); give the value the run believes with --dyna.physics-prior {leaked[0]}=..."
+        )
+    from ..models.coefficients import LearnedCoefficients  # builds the prior: values checked as the run will
+
+    try:
+        physics = _task_class(cfg.env)(**cfg.env_kwargs).physics.with_coefficients(**prior)
+        if learned:
+            LearnedCoefficients(physics, learned, penalty=d.correction_penalty)
+    except ValueError as exc:
+        raise ConfigError(f"physics prior: {exc}") from None
 
 
 #: physics-loss sources by kind of system (what :func:`pimbrl.models.state_sources.available_sources`

@@ -154,7 +154,7 @@ class DynaModel:
                     self.trainer.residual is not None and n_real + len(self.imagined) >= d.start_physics_after
                 ):
                     unlabelled = UnlabelledPairs(
-                        real, train_idx, self.imagined, self.task, self.adapter, agent, self.streams, self.sources
+                        real, train_idx, self.imagined, self.task, self.adapter, agent, self.streams, self.sources, self.physics
                     )
                 if labelled is not None:
                     self.trainer.ensure_normalization(labelled.all())  # once: statistics of the first training data
@@ -350,6 +350,7 @@ class UnlabelledPairs:
     ``imagined``: the imagined buffer's pairs (its share goes to the other sources while the buffer is
     empty; with ``imagined`` alone, to ``policy``); the broad sources of :mod:`pimbrl.models.state_sources`
     from the real training states. Actions and their noise come from the ``physics_states`` stream.
+    ``physics`` (default: the task's) is the run's prior, which the broad sources consult.
     """
 
     def __init__(
@@ -362,8 +363,10 @@ class UnlabelledPairs:
         agent: Agent,
         streams: RandomStreams,
         sources: tuple[str, ...] = ("policy", "imagined"),
+        physics: Physics | None = None,
     ) -> None:
         self.real = real
+        self.physics = task.physics if physics is None else physics  # the run's prior: what it knows
         self.idx = train_idx
         self.imagined = imagined
         self.task = task
@@ -400,7 +403,7 @@ class UnlabelledPairs:
             else:  # broad_states draws n seeds among those it is given: gather just n rows (none for the box)
                 pick = self.idx[torch.from_numpy(self.rng.integers(0, len(self.idx), size=n))]
                 seeds = self.real.extra("state", pick) if source != "box" else self.real.extra("state", pick[:1])
-                pair = broad_pairs(self.task.physics, source, seeds, n, self.rng)
+                pair = broad_pairs(self.physics, source, seeds, n, self.rng)
                 states.append(pair[0])
                 acts.append(pair[1])
         return TransitionData(torch.cat(states), torch.cat(acts))

@@ -265,7 +265,8 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
                     with log.timed("checkpoint"):
                         run.save_checkpoint()
                     event("checkpoint", run)
-                run.collector.reset(first=False)
+                if run.t < cfg.total_steps:  # at the end the reset is left to a continuation (resume --total-steps)
+                    run.collector.reset(first=False)
         if run.t % cfg.eval_every != 0 or log.last_eval is None:
             _evaluate(run)
         if run.t % cfg.log_every != 0:

@@ -162,10 +162,9 @@ def steps_to_threshold(evaluations: list[dict[str, Any]], threshold: float | Non
 
 def wall_s_to_threshold(evaluations: list[dict[str, Any]], threshold: float | None) -> float | None:
     """Training wall-clock (seconds) at the first evaluation whose mean return reaches ``threshold``."""
-    step = steps_to_threshold(evaluations, threshold)
-    if step is None:
+    if threshold is None:
         return None
-    return next(float(r["wall_s"]) for r in evaluations if int(float(r["step"])) == step)
+    return next((float(r["wall_s"]) for r in evaluations if float(r["return_mean"]) >= threshold), None)
 
 
 def package_versions() -> dict[str, str]:

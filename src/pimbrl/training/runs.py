@@ -27,10 +27,10 @@ def extend_run(path: str | Path, total_steps: int) -> None:
     """Raise a run's ``total_steps`` so that resuming it continues past its old end (e.g. MFRL to a threshold).
 
     Only ``config.json`` changes: ``total_steps`` and, for a finished run, its status (running again; the old
-    summary is dropped and written anew at the new end). The run continues from its final checkpoint with a
-    new episode, as every resumed run does (checkpoints do not hold an episode in progress): from the old end
-    on its steps differ from those of a run given the larger budget from the start, up to it they are the
-    same (tested). The real buffer, sized to the old budget, grows to the new one.
+    summary is dropped and written anew at the new end). The run continues from its final checkpoint; where
+    the old end is an episode boundary it makes exactly the steps of a run given the larger budget from the
+    start (tested), where it falls inside an episode it starts a new one there (checkpoints do not hold an
+    episode in progress). The real buffer, sized to the old budget, grows to the new one.
 
     Raises:
         ConfigError: if ``total_steps`` is not larger than the run's, or beyond the allowed maximum.
