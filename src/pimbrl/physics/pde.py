@@ -193,8 +193,9 @@ class ETDRK4:
 
     Args:
         linear: the periodic linear stencil ``L`` (its Fourier symbol gives the exact eigenvalues), or the
-            eigenvalues of ``L`` (real, or complex for a non-symmetric stencil) on the ``n // 2 + 1`` rfft modes directly: a NumPy array, or a torch
-            tensor (then the step is differentiable in them, for coefficients that are being learned).
+            eigenvalues of ``L`` (real, or complex for a non-symmetric stencil) on the ``n // 2 + 1`` rfft
+            modes directly: a NumPy array, or a torch tensor (then the step is differentiable in them, for
+            coefficients that are being learned).
         n: number of grid points.
         h: step size.
         contour_points: points of the contour integrals for the phi-functions.
