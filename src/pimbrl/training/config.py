@@ -147,7 +147,9 @@ class DynaConfig:
         "a learned linear correction for what no coefficient expresses",
     )
     correction_penalty: float = param(
-        1e-6, "pimbrl: weight of the learned correction's size (sum of its squared scaled coefficients)", non_negative()
+        1e-6,
+        "pimbrl: weight of the learned correction's size (sum of its squared scaled coefficients)",
+        [non_negative(), at_most(1e6)],
     )
     coefficient_lr: float = param(1e-2, "pimbrl: Adam learning rate of the learned coefficients", [positive(), at_most(MAX_LR)])
     reward_quadrature: str = param(
