@@ -108,11 +108,7 @@ class Burgers(SemilinearPDE):
         #: ``(2, n)`` actuator shapes, ``exp(-225 (xi - 0.25)^2)`` and ``exp(-225 (xi - 0.75)^2)`` by default
         self.actuator_shapes = self._shapes(self.actuator_width)
         #: the linear operator ``nu D2 / dx^2`` (``- mu`` with damping)
-        self.linear = BURGERS_D2.scaled(self.nu / self.dx**2, "nu*D2/dx^2")
-        if self.damping != 0.0:
-            self.linear = self.linear + Stencil((0,), (-self.damping,), "-mu")
-        if self.drift != 0.0:
-            self.linear = self.linear + BURGERS_D1.scaled(-self.drift / self.dx, "-c*D1/dx")
+        self.linear = self._with_added_terms(BURGERS_D2.scaled(self.nu / self.dx**2, "nu*D2/dx^2"))
         #: coefficient of ``Db(u^2)``: ``-(u^2/2)_xi = -Db(u^2) / (2 dx)``
         self.nonlinear_coef = -self.convection / (2.0 * self.dx)
         self.method = "euler"
@@ -124,19 +120,11 @@ class Burgers(SemilinearPDE):
         return xp.exp(-(1.0 / width**2) * d**2)
 
     _centres = np.array([0.25, 0.75])
+    drift_stencil = BURGERS_D1
 
     def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
         """``lam = nu D2/dx^2 - mu``, ``-convection / (2 dx)`` and the actuator shapes (see the base class)."""
-        nu, mu = self._coefficient(values, "nu"), self._coefficient(values, "damping")
-        d2: Any = BURGERS_D2.symbol(self.n)[: self.n // 2 + 1].real / self.dx**2
-        d1: Any = BURGERS_D1.symbol(self.n)[: self.n // 2 + 1] / self.dx  # imaginary: a first derivative
-        tensors = [v for v in values.values() if isinstance(v, torch.Tensor)]
-        if tensors:
-            d2, d1 = torch.as_tensor(d2, dtype=torch.float64), torch.as_tensor(d1, dtype=torch.complex128)
-        lam = nu * d2 - mu
-        drift = self._coefficient(values, "drift")
-        if isinstance(drift, torch.Tensor) or drift != 0.0:  # complex eigenvalues only where there is a drift
-            lam = lam - drift * d1
+        lam = self._added_eigenvalues(self._coefficient(values, "nu") * self._symbol(BURGERS_D2, 2, values), values)
         nonlinear = -self._coefficient(values, "convection") / (2.0 * self.dx)
         width = self._coefficient(values, "actuator_width")
         return lam, nonlinear, self._shapes(width)

@@ -133,13 +133,9 @@ class KuramotoSivashinsky(SemilinearPDE):
 
         dx = self.dx
         #: the linear operator ``-D4/dx^4 - D2/dx^2`` as one stencil (with its coefficients; ``- mu`` with damping)
-        self.linear = KS_D4.scaled(-self.hyper_diffusion / dx**4, "-D4/dx^4") + KS_D2.scaled(
-            -self.anti_diffusion / dx**2, "-D2/dx^2"
+        self.linear = self._with_added_terms(
+            KS_D4.scaled(-self.hyper_diffusion / dx**4, "-D4/dx^4") + KS_D2.scaled(-self.anti_diffusion / dx**2, "-D2/dx^2")
         )
-        if self.damping != 0.0:
-            self.linear = self.linear + Stencil((0,), (-self.damping,), "-mu")
-        if self.drift != 0.0:
-            self.linear = self.linear + KS_D1.scaled(-self.drift / dx, "-c*D1/dx")
         #: coefficient of the upwind term ``Dup(u^2)``
         self.nonlinear_coef = -self.convection / (2.0 * dx)
         # weights of the reward integrands [mean (D2u)^2, mean (Dup u^2)^2, mean (D1u)^2, mean u f]
@@ -149,6 +145,8 @@ class KuramotoSivashinsky(SemilinearPDE):
             self.reward_weights = np.array([1.0 / dx**4, 0.0, 1.0 / dx**2, 1.0])
         self.method = "rk4"
         self._kernel: PDEKernel | None = None  # compiled on first use
+
+    drift_stencil = KS_D1
 
     def _shapes(self, width: Any) -> Any:
         dist: Any = self.x[None, :] - self.actuator_centres[:, None]
@@ -161,18 +159,9 @@ class KuramotoSivashinsky(SemilinearPDE):
 
     def operators(self, values: Mapping[str, Any]) -> tuple[Any, Any, Any]:
         """``lam = -b D4/dx^4 - a D2/dx^2 - mu``, ``-c / (2 dx)`` and the actuator shapes (see the base class)."""
-        modes = self.n // 2 + 1
-        d2: Any = KS_D2.symbol(self.n)[:modes].real / self.dx**2
-        d4: Any = KS_D4.symbol(self.n)[:modes].real / self.dx**4
-        d1: Any = KS_D1.symbol(self.n)[:modes] / self.dx  # imaginary: a first derivative
-        if any(isinstance(v, torch.Tensor) for v in values.values()):
-            d2, d4 = torch.as_tensor(d2, dtype=torch.float64), torch.as_tensor(d4, dtype=torch.float64)
-            d1 = torch.as_tensor(d1, dtype=torch.complex128)
         get = functools.partial(self._coefficient, values)
-        lam = -get("hyper_diffusion") * d4 - get("anti_diffusion") * d2 - get("damping")
-        drift = get("drift")
-        if isinstance(drift, torch.Tensor) or drift != 0.0:  # complex eigenvalues only where there is a drift
-            lam = lam - drift * d1
+        d2, d4 = self._symbol(KS_D2, 2, values), self._symbol(KS_D4, 4, values)
+        lam = self._added_eigenvalues(-get("hyper_diffusion") * d4 - get("anti_diffusion") * d2, values)
         return lam, -get("convection") / (2.0 * self.dx), self._shapes(get("actuator_width"))
 
     # ------------------------------------------------------------------ equation

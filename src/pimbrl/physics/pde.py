@@ -71,6 +71,35 @@ class SemilinearPDE(Physics):
     def _coefficient(self, values: Mapping[str, Any], name: str) -> Any:
         return values.get(name, getattr(self, name))
 
+    #: the first difference of the ``drift`` term (raw: divide by dx); subclasses set it
+    drift_stencil: Stencil
+    damping: float
+    drift: float
+
+    def _symbol(self, stencil: Stencil, order: int, values: Mapping[str, Any], real: bool = True) -> Any:
+        """Eigenvalues of ``stencil / dx^order`` on the rfft modes (torch where any of ``values`` is a tensor)."""
+        symbol = stencil.symbol(self.n)[: self.n // 2 + 1]
+        symbol = (symbol.real if real else symbol) / self.dx**order
+        if any(isinstance(v, torch.Tensor) for v in values.values()):
+            return torch.as_tensor(symbol, dtype=torch.float64 if real else torch.complex128)
+        return symbol
+
+    def _with_added_terms(self, linear: Stencil) -> Stencil:
+        """``linear`` plus the terms a prior may lack: ``-mu u`` (damping) and ``-c D1 u / dx`` (drift)."""
+        if self.damping != 0.0:
+            linear = linear + Stencil((0,), (-self.damping,), "-mu")
+        if self.drift != 0.0:
+            linear = linear + self.drift_stencil.scaled(-self.drift / self.dx, "-c*D1/dx")
+        return linear
+
+    def _added_eigenvalues(self, lam: Any, values: Mapping[str, Any]) -> Any:
+        """``lam`` with the damping and the drift terms of :meth:`_with_added_terms` (for :meth:`operators`)."""
+        lam = lam - self._coefficient(values, "damping")
+        drift = self._coefficient(values, "drift")
+        if isinstance(drift, torch.Tensor) or drift != 0.0:  # complex eigenvalues only where there is a drift
+            lam = lam - drift * self._symbol(self.drift_stencil, 1, values, real=False)
+        return lam
+
     def check_stability(self) -> None:
         """Refuse coefficients for which the explicit solver step amplifies a mode of the linear part.
 
