@@ -25,6 +25,7 @@ import torch
 import pimbrl  # noqa: F401 - registers the environments
 from pimbrl.config import parse_learned, parse_prior
 from pimbrl.models import PhysicsResidual
+from pimbrl.models.coefficients import CORRECTION_OF
 
 #: (name, environment, true coefficients, prior coefficients, learned)
 CASES = (
@@ -38,8 +39,6 @@ CASES = (
     ("burgers missing drift (correction)", "pimbrl/Burgers-v0", "drift=0.05", "drift=0", "correction"),
     ("ks missing drift (correction)", "pimbrl/KuramotoSivashinsky-v0", "drift=0.2", "drift=0", "correction"),
 )
-#: what a correction case is judged by: its first-derivative coefficient against minus the true drift
-CORRECTION_TARGET = {"drift": ("correction_u_x", -1.0)}
 
 
 def collect(env_id: str, true: dict[str, float], n: int, seed: int) -> tuple[np.ndarray, ...]:
@@ -103,9 +102,7 @@ def main() -> None:
             for seed in seeds:
                 found, wall = identify(env_id, true, prior, learn, n, seed, args.fit_steps, args.lr)
                 if learn == "correction":
-                    err = max(
-                        abs(found[CORRECTION_TARGET[k][0]] - CORRECTION_TARGET[k][1] * v) / abs(v) for k, v in truth.items()
-                    )
+                    err = max(abs(found[CORRECTION_OF[k][0]] - CORRECTION_OF[k][1] * v) / abs(v) for k, v in truth.items())
                 else:
                     err = max(abs(found[k] - v) / abs(v) for k, v in truth.items())
                 errors.append(err)

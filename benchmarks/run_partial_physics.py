@@ -30,6 +30,7 @@ import _common
 
 from pimbrl.config import parse_prior
 from pimbrl.experiments.compare import RunSpec, run_all
+from pimbrl.models.coefficients import CORRECTION_OF
 from pimbrl.training import RunDirectory
 from pimbrl.training.cli_args import config_from_argv
 from pimbrl.training.rundir import steps_to_threshold
@@ -49,10 +50,6 @@ def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
     if variant == "pimbrl-true":
         return ["--method", "pimbrl", *env_kwargs]
     raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
-
-
-#: a true term a learned correction stands for: (the correction's coefficient, its sign against the term)
-CORRECTION_OF = {"drift": ("correction_u_x", -1.0), "damping": ("correction_u", -1.0)}
 
 
 def identified_within(history: list[dict], truth: dict[str, float], tolerance: float = 0.05) -> int | None:

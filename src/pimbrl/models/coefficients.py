@@ -30,7 +30,7 @@ from ..config import parse_learned, parse_prior
 from ..physics import Physics, Stencil
 from ..physics.pde import SemilinearPDE
 
-__all__ = ["CORRECTION", "CORRECTION_NAMES", "LearnedCoefficients", "parse_learned", "parse_prior"]
+__all__ = ["CORRECTION", "CORRECTION_NAMES", "CORRECTION_OF", "LearnedCoefficients", "parse_learned", "parse_prior"]
 
 #: the name that adds the learned linear correction to the learned coefficients
 CORRECTION = "correction"
@@ -44,6 +44,9 @@ CORRECTION_STENCILS = (
 )
 #: how the correction's coefficients are reported: c_j of d^j u / dx^j
 CORRECTION_NAMES = ("correction_u", "correction_u_x", "correction_u_xx", "correction_u_xxx", "correction_u_xxxx")
+#: a PDE coefficient whose term the correction can stand for: (the correction's coefficient, its value per unit
+#: of the coefficient) -- a drift ``-c u_x`` is ``correction_u_x = -c``, a damping ``-mu u`` is ``correction_u = -mu``
+CORRECTION_OF = {"drift": ("correction_u_x", -1.0), "damping": ("correction_u", -1.0)}
 
 
 class LearnedCoefficients(torch.nn.Module):
