@@ -306,8 +306,8 @@ def _flag(path: str) -> str:
     return f"--{head + '.' if head else ''}{name.replace('_', '-')}"
 
 
-def _task_class(env: str) -> Any:
-    """The task class of a pimbrl environment id (``None`` for any other Gymnasium id)."""
+def _entry_point(env: str) -> Any:
+    """The class (or factory) a Gymnasium id makes, imported (``None`` if the id or its module is unknown)."""
     import gymnasium as gym
 
     try:
@@ -320,7 +320,12 @@ def _task_class(env: str) -> Any:
             entry = getattr(importlib.import_module(module), name)
         except (ImportError, AttributeError):
             return None
-    return getattr(entry, "task_class", None)
+    return entry
+
+
+def _task_class(env: str) -> Any:
+    """The task class of a pimbrl environment id (``None`` for any other Gymnasium id)."""
+    return getattr(_entry_point(env), "task_class", None)
 
 
 @functools.cache
@@ -402,20 +407,17 @@ def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
     """
     if not kwargs:
         return
-    import gymnasium as gym
-
+    entry = _entry_point(env)
+    if entry is None:
+        return
     try:
-        entry = gym.spec(env).entry_point
-        if isinstance(entry, str):
-            module, _, name = entry.partition(":")
-            entry = getattr(importlib.import_module(module), name)
         task_class = getattr(entry, "task_class", None)
         target: Any = task_class or entry
         params = inspect.signature(target).parameters.values()
         extra: tuple[str, ...] = ()
         if task_class is not None and any(p.kind is p.VAR_KEYWORD for p in params):
             extra = tuple(task_class().physics.coefficients)  # a task's physics is built without simulating
-    except (gym.error.Error, ImportError, AttributeError, TypeError, ValueError):
+    except (AttributeError, TypeError, ValueError):
         return
     if not extra and any(p.kind is p.VAR_KEYWORD for p in params):
         return
