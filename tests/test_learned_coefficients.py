@@ -77,6 +77,18 @@ def test_the_physics_loss_uses_the_coefficients_without_moving_them() -> None:
     assert residual.coefficients.theta.grad is None  # but not the coefficients
 
 
+def _fit(residual: PhysicsResidual, u, a, u1, steps: int) -> None:
+    assert residual.coefficients is not None
+    optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=1e-2)
+    states, actions, nxt = (torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1))
+    for _ in range(steps):
+        loss = residual.coefficient_loss(states, actions, nxt)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        residual.coefficients.project()
+
+
 @pytest.mark.parametrize(
     ("name", "true", "prior", "bounds"),
     [("convection", 1.3, 1.0, None), ("convection", 0.7, 1.0, None), ("damping", 0.1, 0.0, (0.0, 1.0))],
@@ -91,15 +103,8 @@ def test_a_wrong_or_missing_ks_coefficient_is_identified_from_labelled_transitio
     a = rng.uniform(-0.5, 0.5, size=(256, 4))
     u1, _ = system.advance(u, a, np.zeros(256, dtype=np.int64))
     residual = PhysicsResidual(system.with_coefficients(**{name: prior}), 5, learned={name: bounds})
+    _fit(residual, u, a, u1, 150)
     assert residual.coefficients is not None
-    optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=1e-2)
-    states, actions, nxt = (torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1))
-    for _ in range(150):
-        loss = residual.coefficient_loss(states, actions, nxt)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        residual.coefficients.project()
     assert residual.coefficients.current()[name] == pytest.approx(true, rel=0.01)
 
 
@@ -166,18 +171,6 @@ def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients
     last = RunDirectory(run).metrics([]).read()[-1]
     assert float(last["coef/nu"]) == pytest.approx(report["current"]["nu"], rel=1e-6)
     assert float(last["model/coefficient_loss"]) > 0
-
-
-def _fit(residual: PhysicsResidual, u, a, u1, steps: int) -> None:
-    assert residual.coefficients is not None
-    optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=1e-2)
-    states, actions, nxt = (torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1))
-    for _ in range(steps):
-        loss = residual.coefficient_loss(states, actions, nxt)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        residual.coefficients.project()
 
 
 def test_the_correction_finds_a_term_of_a_form_the_prior_lacks_and_stays_small_where_nothing_is_missing() -> None:
