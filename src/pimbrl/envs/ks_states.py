@@ -18,7 +18,9 @@ Generation, fully seeded:
 
 Train and test pools come from disjoint sets of runs (independent seed streams), so no test state is
 ever a training state. Pools are cached under :func:`pimbrl.physics.kernels.cache_dir`, keyed by the
-numerics and every generation parameter, and written atomically. Since the unforced runs *are* the
+numerics, the simulator kernel's version and every generation parameter, and written atomically. The runs
+are chaotic, so round-off (another kernel, another CPU) changes the states slightly (the test pool by up to
+~1e-9 from kernel version 4 to 5) and can change which runs qualify (the training pool's composition). Since the unforced runs *are* the
 uncontrolled episodes, the uncontrolled return of every pool state is recorded for free.
 """
 
@@ -36,7 +38,7 @@ from typing import Literal
 import numpy as np
 
 from ..physics import KuramotoSivashinsky
-from ..physics.kernels import cache_dir
+from ..physics.kernels import GENERATOR_VERSION, cache_dir
 
 __all__ = ["KSPool", "KSPoolConfig", "ks_initial_state_pool"]
 
@@ -137,7 +139,15 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
 
 
 def _cache_key(physics: KuramotoSivashinsky, cfg: KSPoolConfig) -> str:
-    numerics = {"n": physics.n, "length": physics.length, "dt": physics.dt, "substeps": physics.substeps}
+    # the kernel's version too: a new kernel changes the pool's chaotic runs at round-off, enough to change
+    # which runs qualify and the recorded uncontrolled returns
+    numerics = {
+        "n": physics.n,
+        "length": physics.length,
+        "dt": physics.dt,
+        "substeps": physics.substeps,
+        "kernel": GENERATOR_VERSION,
+    }
     blob = json.dumps({"v": _POOL_VERSION, "numerics": numerics, "cfg": asdict(cfg)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -55,10 +55,12 @@ from numba import boolean, float64, int64
 
 from .stencil import Stencil
 
-__all__ = ["N_REWARD_TERMS", "PDEKernel", "PDEKernelSpec", "build_pde_kernel", "cache_dir"]
+__all__ = ["GENERATOR_VERSION", "N_REWARD_TERMS", "PDEKernel", "PDEKernelSpec", "build_pde_kernel", "cache_dir"]
 
 N_REWARD_TERMS = 4
-_GENERATOR_VERSION = "5"
+#: version of the generated kernel source; a new one may change results at round-off (so it keys the caches
+#: of anything simulated with the kernel, such as the KS initial-state pools)
+GENERATOR_VERSION = "5"
 
 
 def cache_dir() -> Path:
@@ -270,7 +272,7 @@ def generate_source(spec: PDEKernelSpec) -> str:
     """The Python/Numba source of the kernel for ``spec``."""
     stepper = _rk4_lines(spec) if spec.method == "rk4" else _euler_lines(spec)
     return _TEMPLATE.format(
-        version=_GENERATOR_VERSION, halo=spec.halo, grid=_indent(_grid_lines(spec), 1), stepper=_indent(stepper, 3)
+        version=GENERATOR_VERSION, halo=spec.halo, grid=_indent(_grid_lines(spec), 1), stepper=_indent(stepper, 3)
     )
 
 
