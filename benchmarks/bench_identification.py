@@ -9,6 +9,7 @@ identified values against the environment's, per seed.
 Usage::
 
     python benchmarks/bench_identification.py --labels 100,300,1000,2000 --seeds 0,1,2
+    python benchmarks/bench_identification.py --cases pendulum,cartpole --name identification_ode
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import pimbrl  # noqa: F401 - registers the environments
 from pimbrl.config import parse_learned, parse_prior
 from pimbrl.models import PhysicsResidual
 from pimbrl.models.coefficients import CORRECTION_OF
+from pimbrl.physics.pde import SemilinearPDE
 
 #: (name, environment, true coefficients, prior coefficients, learned)
 CASES = (
@@ -38,6 +40,12 @@ CASES = (
     # a term of a form the prior lacks: a drift -c u_x, found by the learned linear correction (c_1 = -c)
     ("burgers missing drift (correction)", "pimbrl/Burgers-v0", "drift=0.05", "drift=0", "correction"),
     ("ks missing drift (correction)", "pimbrl/KuramotoSivashinsky-v0", "drift=0.2", "drift=0", "correction"),
+    # the ODE systems, through their own solver step
+    ("pendulum l +30%", "pimbrl/Pendulum-v0", "l=1.3", "l=1", "l"),
+    ("pendulum l -30%", "pimbrl/Pendulum-v0", "l=0.7", "l=1", "l"),
+    ("pendulum missing damping", "pimbrl/Pendulum-v0", "damping=0.1", "damping=0", "damping:0:1"),
+    ("cartpole masspole +30%", "pimbrl/CartPole-v0", "masspole=0.13", "masspole=0.1", "masspole"),
+    ("cartpole missing pole friction", "pimbrl/CartPole-v0", "pole_friction=0.002", "pole_friction=0", "pole_friction:0:0.01"),
 )
 
 
@@ -65,7 +73,8 @@ def identify(
     truth = parse_prior(true)
     u, a, u1 = (torch.as_tensor(x, dtype=torch.float32) for x in collect(env_id, truth, n, seed))
     physics = gym.make(env_id).unwrapped.task.physics.with_coefficients(**parse_prior(prior))
-    residual = PhysicsResidual(physics, 5, learned=parse_learned(learn))
+    n_intermediate = 5 if isinstance(physics, SemilinearPDE) else physics.substeps  # as in training
+    residual = PhysicsResidual(physics, n_intermediate, learned=parse_learned(learn))
     assert residual.coefficients is not None
     optimizer = torch.optim.Adam(residual.coefficients.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
@@ -108,8 +117,8 @@ def main() -> None:
                 errors.append(err)
                 rows.append({"case": name, "labels": n, "seed": seed, "identified": found, "relative_error": err, "fit_s": wall})
             print(
-                f"{name:>24}  {n:>5} labels  relative error {min(errors):.2%} .. {max(errors):.2%} "
-                f"(median {statistics.median(errors):.2%}) over {len(seeds)} seeds"
+                f"{name:>24}  {n:>5} labels  relative error {100 * min(errors):.2g} % .. {100 * max(errors):.2g} % "
+                f"(median {100 * statistics.median(errors):.2g} %) over {len(seeds)} seeds"
             )
     _common.record(args.name, {"fit_steps": args.fit_steps, "lr": args.lr, "labels": labels, "seeds": seeds, "rows": rows})
 

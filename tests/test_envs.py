@@ -235,3 +235,37 @@ def test_test_initial_states_are_fixed_and_ks_takes_its_test_pool(ks_small_pools
     np.testing.assert_array_equal(custom.test_initial_states(SMALL_POOL.n_test, seed=0), test.states)
     with pytest.raises(ValueError, match="test pool holds 8"):
         ks.test_initial_states(SMALL_POOL.n_test + 1, seed=0)
+
+
+def test_ks_authors_protocol_takes_fixed_training_rows_and_other_tasks_refuse_it(ks_small_pools, monkeypatch) -> None:
+    from pimbrl.training import Evaluator
+
+    train, test = ks_small_pools
+    ks = KSTask(pool_config=SMALL_POOL)
+    assert ks.eval_protocols == ("test", "authors")
+    np.testing.assert_array_equal(ks.protocol_initial_states("test", 3, seed=0), test.states[:3])
+    # the paper's rows need a training pool of at least 200 states; the small one holds 24
+    with pytest.raises(ValueError, match="pool holds 24 states"):
+        ks.protocol_initial_states("authors", None, seed=0)
+    monkeypatch.setattr(KSTask, "AUTHORS_EVAL_ROWS", (0, 7, 23))
+    np.testing.assert_array_equal(ks.protocol_initial_states("authors", None, seed=0), train.states[[0, 7, 23]])
+    with pytest.raises(ValueError, match="has 3 episodes, not 5"):
+        ks.protocol_initial_states("authors", 5, seed=0)
+    with pytest.raises(ValueError, match="not defined for PendulumTask; choose from 'test'"):
+        PendulumTask().protocol_initial_states("authors", None, seed=0)
+
+    ev = Evaluator("pimbrl/KuramotoSivashinsky-v0", {"pool_config": SMALL_POOL}, None, 0, protocol="authors")
+    assert ev.episodes == 3
+    np.testing.assert_array_equal(ev.initial_states, train.states[[0, 7, 23]])
+    result = ev.run(lambda o: np.zeros((len(o), 4), np.float32))
+    # the uncontrolled return of a pool state is recorded by the pool generator
+    np.testing.assert_allclose(result.returns, train.uncontrolled_returns(ks.physics)[[0, 7, 23]], rtol=1e-9)
+    with pytest.raises(ValueError, match="not defined for PendulumTask"):
+        Evaluator("pimbrl/Pendulum-v0", {}, None, 0, protocol="authors")
+
+
+def test_evaluation_quartiles_are_numpy_quantiles() -> None:
+    from pimbrl.training.evaluation import EvalResult
+
+    r = EvalResult(np.array([-5.0, -1.0, -3.0, -2.0, -4.0]), np.full(5, 400))
+    assert r.quartiles() == {"return_q25": -4.0, "return_median": -3.0, "return_q75": -2.0}

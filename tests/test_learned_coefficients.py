@@ -13,7 +13,7 @@ from pimbrl.config import ConfigError, parse_learned, parse_prior
 from pimbrl.envs import ks_initial_state_pool
 from pimbrl.models import ModelTrainer, PhysicsResidual, make_model
 from pimbrl.models.coefficients import LearnedCoefficients
-from pimbrl.physics import Burgers, KuramotoSivashinsky, Pendulum
+from pimbrl.physics import Burgers, CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.training import RunDirectory, resolve_config
 
 from .test_dyna import DYNA_SMOKE, SMALL_MODEL
@@ -50,8 +50,9 @@ def test_learned_coefficients_start_at_the_prior_and_respect_their_range() -> No
         learned.theta.fill_(-3.0)
     learned.project()
     assert learned.current()["damping"] == 0.0
-    with pytest.raises(ValueError, match="need a PDE system"):
-        LearnedCoefficients(Pendulum(), {"m": None})
+    assert LearnedCoefficients(Pendulum(), {"m": None, "damping": (0.0, 1.0)}).current() == {"m": 1.0, "damping": 0.0}
+    with pytest.raises(ValueError, match="is a linear operator on a PDE's grid; pendulum is an ODE system"):
+        LearnedCoefficients(Pendulum(), {"correction": None})
     with pytest.raises(ValueError, match="has no coefficient 'nuu'"):
         LearnedCoefficients(prior, {"nuu": None})
 
@@ -146,7 +147,7 @@ def test_learned_coefficient_flags_are_refused_where_they_do_nothing(tmp_path) -
         main(["train", "burgers", "--method", "mbrl", "--dyna.learn-coefficients", "nu", "--run-dir", str(tmp_path / "a")]) == 2
     )
     assert (
-        main(["train", "pendulum", "--method", "pimbrl", "--dyna.learn-coefficients", "m", "--run-dir", str(tmp_path / "b")]) == 2
+        main(["train", "pendulum", "--method", "mbrl", "--dyna.learn-coefficients", "m", "--run-dir", str(tmp_path / "b")]) == 2
     )
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
@@ -194,8 +195,15 @@ def test_the_correction_finds_a_term_of_a_form_the_prior_lacks_and_stays_small_w
 
 def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
     assert resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu,correction"})
-    with pytest.raises(ConfigError, match="applies to the PDE environments"):
+    with pytest.raises(
+        ConfigError,
+        match=r"correction is a linear operator on a PDE's grid .*, not for pimbrl/CartPole-v0; name the coefficients",
+    ):
         resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "correction"})
+    with pytest.raises(ConfigError, match="correction-penalty applies to the PDE environments"):
+        resolve_config(
+            "pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "masspole", "dyna.correction_penalty": 1.0}
+        )
     with pytest.raises(ValueError, match="takes no range"):
         LearnedCoefficients(Burgers(), {"correction": (0.0, 1.0)})
 
@@ -246,6 +254,68 @@ def test_a_run_with_learned_coefficients_continues_bit_for_bit(tmp_path) -> None
         assert table(whole, name) == table(cut, name), name
     history = [json.loads((p / "coefficients.json").read_text())["history"] for p in (whole, cut)]
     assert history[0] == history[1] and len(history[0]) >= 2
+
+
+@pytest.mark.parametrize(
+    ("system", "values"),
+    [
+        (Pendulum(damping=0.05), {"l": 1.2, "damping": 0.0}),
+        (CartPole(pole_friction=0.01), {"masspole": 0.13, "cart_friction": 0.0}),
+    ],
+)
+def test_ode_steps_with_tensor_coefficients_equal_the_float_ones_and_carry_their_gradient(system, values) -> None:
+    rng = np.random.default_rng(3)
+    u = torch.as_tensor(rng.uniform(-0.2, 0.2, size=(16, system.state_dim)))
+    a = torch.as_tensor(rng.uniform(system.action_low, system.action_high, size=(16, 1)))
+    tensors = {k: torch.tensor(v, dtype=torch.float64, requires_grad=True) for k, v in values.items()}
+    stepped = system.with_coefficient_tensors(tensors).step(u, a)
+    torch.testing.assert_close(stepped, system.with_coefficients(**values).step(u, a), rtol=1e-13, atol=1e-15)
+    stepped.pow(2).sum().backward()
+    # a term the float system skips at 0 (a friction, a damping) is computed for a tensor: it has a gradient
+    assert all(t.grad is not None and float(t.grad) != 0.0 for t in tensors.values())
+    with pytest.raises(ValueError, match="has no coefficient 'mass'"):
+        system.with_coefficient_tensors({"mass": torch.tensor(1.0)})
+    with pytest.raises(ValueError, match="only the ODE systems take them"):
+        Burgers().with_coefficient_tensors({"nu": torch.tensor(0.01)})
+
+
+@pytest.mark.parametrize(
+    ("system", "prior", "learned"),
+    [
+        (Pendulum(l=1.3), {"l": 1.0}, {"l": None}),
+        (Pendulum(l=0.7), {"l": 1.0}, {"l": None}),
+        (Pendulum(damping=0.1), {}, {"damping": (0.0, 1.0)}),
+        (CartPole(masspole=0.13), {"masspole": 0.1}, {"masspole": None}),
+        (CartPole(pole_friction=0.002), {}, {"pole_friction": (0.0, 0.01)}),
+    ],
+)
+def test_a_wrong_or_missing_ode_coefficient_is_identified_from_labelled_transitions(system, prior, learned) -> None:
+    """Pendulum length 30 % off, a missing pendulum damping, Cart-Pole pole mass 30 % off, a missing pole friction."""
+    rng = np.random.default_rng(0)
+    box_low, box_high = system.admissible_box()
+    u = rng.uniform(box_low, box_high, size=(256, system.state_dim)) * (0.5 if isinstance(system, CartPole) else 1.0)
+    a = rng.uniform(system.action_low, system.action_high, size=(256, 1))
+    u1, _ = system.advance(u, a, np.zeros(256, dtype=np.int64))
+    start = system.with_coefficients(**prior)
+    start = start.with_coefficients(**{name: 0.0 for name in learned if name not in prior})
+    residual = PhysicsResidual(start, start.substeps, learned=learned)
+    _fit(residual, u, a, u1, 300)
+    assert residual.coefficients is not None
+    (name,) = learned
+    assert residual.coefficients.current()[name] == pytest.approx(getattr(system, name), rel=0.01)
+
+
+def test_a_pendulum_run_with_a_wrong_length_learns_it(tmp_path) -> None:
+    run = tmp_path / "run"
+    args = [
+        "train", "pendulum", "--method", "pimbrl", "--run-dir", str(run), *DYNA_SMOKE["pendulum"], *TINY, *SMALL_MODEL,
+        "--env-kwargs", '{"l": 1.3}', "--dyna.physics-prior", "l=1.0", "--dyna.learn-coefficients", "l",
+        "--dyna.coefficient-lr", "0.05",
+    ]  # fmt: skip
+    assert main(args) == 0
+    report = json.loads((run / "coefficients.json").read_text())
+    assert report["environment"]["l"] == 1.3 and report["prior"]["l"] == 1.0
+    assert abs(report["current"]["l"] - 1.3) < 0.3 / 2  # well on its way from the prior to the truth
 
 
 # ---------------------------------------------------------------------- a learned actuator width on the model side

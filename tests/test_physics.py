@@ -46,6 +46,25 @@ def test_compiled_rhs_equals_torch_rhs(system) -> None:
     assert np.max(np.abs(_kernel_rhs(phys, u, a) - torch_rhs)) <= 1e-12
 
 
+@pytest.mark.parametrize("system", [KuramotoSivashinsky, Burgers])
+def test_kernel_with_fixed_grid_size_matches_the_generic_kernel(system) -> None:
+    phys = system()
+    spec = phys.kernel_spec()
+    assert spec.n == phys.n
+    rng = np.random.default_rng(3)
+    if system is KuramotoSivashinsky:
+        u, a, weights = _ks_state(phys, rng, 3), rng.uniform(-0.5, 0.5, (3, 4)), phys.reward_weights
+    else:
+        u, a, weights = _burgers_state(phys, rng, 3), rng.uniform(-0.025, 0.075, (3, 2)), np.zeros(4)
+    run = (a, phys.actuator_shapes, phys.dt, phys.substeps, True, np.asarray(weights, dtype=np.float64))
+    fixed = build_pde_kernel(spec)(u, *run)
+    generic = build_pde_kernel(dataclasses.replace(spec, n=None))(u, *run)
+    for x, y in zip(fixed, generic):
+        assert np.max(np.abs(x - y)) <= 1e-12 * max(np.max(np.abs(y)), 1.0)
+    with pytest.raises(ValueError, match="grid size"):
+        build_pde_kernel(spec)(np.zeros((1, phys.n + 2)), *run)
+
+
 @pytest.mark.parametrize("reward", ["code", "physical"])
 def test_ks_kernel_step_and_reward_equal_torch(reward: str) -> None:
     ks = KuramotoSivashinsky(reward=reward)

@@ -100,6 +100,9 @@ def test_cli_train_eval_plot_smoke(env: str, tmp_path, capsys) -> None:
     capsys.readouterr()
     assert main(["eval", str(run)]) == 0
     assert "return mean" in capsys.readouterr().out
+    if env != "ks":  # KS's 'authors' protocol needs the full training pool (tests/test_envs.py covers it)
+        assert main(["eval", str(run), "--protocol", "authors"]) == 2
+        assert "protocol 'authors' is not defined" in capsys.readouterr().err
     assert main(["plot", str(run), "--out", str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.png").stat().st_size > 5_000
     # resuming a finished run does nothing

@@ -220,12 +220,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
     cfg = run.cfg
-    episodes = args.episodes or cfg.eval_episodes
-    evaluator = run.evaluator if episodes == cfg.eval_episodes else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
+    if args.protocol == "test":
+        episodes = args.episodes or cfg.eval_episodes
+        same = episodes == cfg.eval_episodes
+        evaluator = run.evaluator if same else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
+    else:
+        evaluator = Evaluator(cfg.env, cfg.env_kwargs, args.episodes, cfg.eval_seed, protocol=args.protocol)
     result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
-    s = result.summary()
+    s = {**result.summary(), **result.quartiles()}
     print(
-        f"{args.run_dir} (step {run.t:,d}, {episodes} test episodes): return mean {s['return_mean']:.3f}, "
+        f"{args.run_dir} (step {run.t:,d}, {evaluator.episodes} {args.protocol}-protocol episodes): return mean "
+        f"{s['return_mean']:.3f}, quartiles {s['return_q25']:.3f} / {s['return_median']:.3f} / {s['return_q75']:.3f}, "
         f"min {s['return_min']:.3f}, max {s['return_max']:.3f}, std {s['return_std']:.3f}"
     )
     rows = run.run_dir.evaluations.read()
@@ -233,7 +238,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         reached = steps_to_threshold(rows, cfg.threshold)
         print(f"steps to threshold {cfg.threshold:g}: {'not reached' if reached is None else f'{reached:,d}'}")
     if args.json:
-        print(json.dumps({"step": run.t, **s, "config": dataclasses.asdict(cfg)}, default=str))
+        payload = {"step": run.t, "protocol": args.protocol, **s, "returns": result.returns.tolist()}
+        print(json.dumps({**payload, "config": dataclasses.asdict(cfg)}, default=str))
     return 0
 
 
@@ -463,6 +469,13 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("eval", help="evaluate a run's latest checkpoint on its test episodes")
     ev.add_argument("run_dir")
     ev.add_argument("--episodes", type=int, default=None, help="number of test episodes (default: the run's)")
+    ev.add_argument(
+        "--protocol",
+        choices=("test", "authors"),
+        default="test",
+        help="initial states: the run's held-out test states (default), or KS 'authors': the 5 training-pool rows "
+        "0, 49, 99, 149, 199 on which the paper reports its mean return",
+    )
     ev.add_argument("--json", action="store_true", help="also print a JSON line")
     ev.set_defaults(func=_cmd_eval)
 

@@ -104,6 +104,36 @@ class KSTask(Task):
             )
         return ks_initial_state_pool("test", self.pool_config).states[:n].copy()
 
+    #: rows of the training pool evaluated by the ``"authors"`` protocol, as the authors' code evaluates rows
+    #: 0, 49, 99, 149 and 199 of its array of training initial states
+    AUTHORS_EVAL_ROWS = (0, 49, 99, 149, 199)
+
+    @property
+    def eval_protocols(self) -> tuple[str, ...]:
+        """``"test"`` (the held-out test pool) and ``"authors"`` (5 fixed training states)."""
+        return ("test", "authors")
+
+    def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
+        """``"test"``: the first ``n`` test-pool states; ``"authors"``: rows :data:`AUTHORS_EVAL_ROWS` of the training pool.
+
+        The authors report the mean return over 5 states the agent trained on (rows 0, 49, 99, 149, 199 of
+        their array of training states, snapshots of one trajectory); ``"authors"`` takes the same rows of
+        this task's training pool (snapshots of several chaotic transients, so the 5 states come from
+        different runs). ``n`` must then be 5 or ``None``.
+        """
+        if protocol != "authors":
+            return super().protocol_initial_states(protocol, n, seed)
+        rows = list(self.AUTHORS_EVAL_ROWS)
+        if n is not None and n != len(rows):
+            raise ValueError(f"the 'authors' KS protocol has {len(rows)} episodes, not {n}; leave the number of episodes unset")
+        pool = ks_initial_state_pool("train", self.pool_config).states
+        if len(pool) <= rows[-1]:
+            raise ValueError(
+                f"the 'authors' KS protocol evaluates training-pool row {rows[-1]}, but the pool holds {len(pool)} states "
+                "(raise KSPoolConfig.n_train through pool_config)"
+            )
+        return pool[rows].copy()
+
     def observe(self, u: np.ndarray, k: np.ndarray) -> np.ndarray:
         """The field itself, as float32."""
         return u.astype(np.float32)

@@ -186,3 +186,23 @@ class Task(ABC):
         a task with a fixed, held-out test set (KS) returns the first ``n`` states of that set instead.
         """
         return self.sample_initial_states(np.random.default_rng(seed), n)
+
+    def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
+        """Initial states of the test episodes of an evaluation ``protocol`` (see :data:`EVAL_PROTOCOLS`).
+
+        ``"test"``: :meth:`test_initial_states` (``n`` required). Other protocols are defined by the tasks
+        that have them (KS: ``"authors"``); asking another task for one is a ``ValueError``.
+        """
+        if protocol == "test":
+            if n is None:
+                raise ValueError("the 'test' evaluation protocol needs a number of episodes")
+            return self.test_initial_states(n, seed)
+        raise ValueError(
+            f"evaluation protocol {protocol!r} is not defined for {type(self).__name__}; "
+            f"choose from {', '.join(repr(p) for p in self.eval_protocols)}"
+        )
+
+    @property
+    def eval_protocols(self) -> tuple[str, ...]:
+        """The evaluation protocols this task defines (``"test"``: held-out states, for every task)."""
+        return ("test",)

@@ -8,7 +8,8 @@ of those coefficients can be *learned*:
 * a learned coefficient is a trainable scalar of the residual, initialised at the prior's value, free or
   confined to a range ``[low, high]`` (by projection after every step);
 * it is fitted to the labelled transitions by the coarse scheme of the residual itself: the loss is the
-  next-state error of ``N`` exponential steps of the equation with the current coefficients from each
+  next-state error of ``N`` exponential steps of the equation (PDEs), or of the solver's own step (ODEs,
+  :meth:`pimbrl.physics.Physics.with_coefficient_tensors`), with the current coefficients from each
   labelled state and action. Only labelled transitions carry information about the coefficients: on a
   label-free state the model could follow the equation with any coefficients, so the physics loss uses the
   current values but does not move them;
@@ -64,7 +65,7 @@ def _check_range_is_admissible(physics: Physics, name: str, low: float, high: fl
 
 
 class LearnedCoefficients(torch.nn.Module):
-    """Trainable physical coefficients of a PDE's residual, initialised at the prior's values.
+    """Trainable physical coefficients of a residual (a PDE's or an ODE system's), initialised at the prior's values.
 
     A free coefficient is ``prior + scale * theta`` with ``scale = |prior|`` (1 where the prior is 0), so that
     Adam's steps are relative changes whatever the coefficient's units, kept by projection at or above 1 % of
@@ -92,13 +93,15 @@ class LearnedCoefficients(torch.nn.Module):
 
     def __init__(self, physics: Physics, learned: Mapping[str, tuple[float, float] | None], penalty: float = 1e-6) -> None:
         super().__init__()
-        if not isinstance(physics, SemilinearPDE):
-            raise ValueError(
-                f"learned coefficients need a PDE system (Burgers, Kuramoto-Sivashinsky), not {physics.name}: "
-                "an ODE system's residual is its own solver step, which is not differentiable in its coefficients"
-            )
+        if not isinstance(physics, SemilinearPDE) and not physics.tensor_coefficients:
+            raise ValueError(f"{physics.name}: its coefficients cannot be learned (its equation takes no tensor coefficients)")
         if not learned:
             raise ValueError("no coefficient to learn: name at least one (e.g. nu)")
+        if CORRECTION in learned and not isinstance(physics, SemilinearPDE):
+            raise ValueError(
+                f"the {CORRECTION} is a linear operator on a PDE's grid; {physics.name} is an ODE system: "
+                "name the coefficients to learn (e.g. a missing friction, prior 0)"
+            )
         prior = physics.coefficient_values()
         self.ranges = {k: v for k, v in learned.items() if k != CORRECTION}
         if CORRECTION in learned and learned[CORRECTION] is not None:
@@ -127,6 +130,7 @@ class LearnedCoefficients(torch.nn.Module):
         #: the linear correction's coefficients (``None``: no correction)
         self.correction: torch.nn.Parameter | None = None
         if CORRECTION in learned:
+            assert isinstance(physics, SemilinearPDE)  # refused above for an ODE system
             n, dx, modes = physics.n, physics.dx, physics.n // 2 + 1
             symbols = np.stack([s.symbol(n)[:modes] / dx**j for j, s in enumerate(CORRECTION_STENCILS)])
             scale = 1.0 / (physics.control_dt * np.abs(symbols).max(axis=1))

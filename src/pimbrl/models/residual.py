@@ -17,8 +17,9 @@ Units of the loss (``units``):
 The loss needs no label, so it can be applied to any state-action pair, including states the model
 itself generated (see :mod:`pimbrl.models.state_sources`).
 
-With ``learned`` coefficients (PDEs, ``"etd"``; :mod:`pimbrl.models.coefficients`) the coarse step is built
-from the equation's parts at the coefficients' current values (:meth:`SemilinearPDE.operators`); the
+With ``learned`` coefficients (:mod:`pimbrl.models.coefficients`) the coarse step is built from the
+equation at the coefficients' current values (PDEs, ``"etd"``: its parts, :meth:`SemilinearPDE.operators`;
+ODEs: the solver step of a copy with tensor coefficients, :meth:`Physics.with_coefficient_tensors`); the
 physics loss uses them without moving them, :meth:`PhysicsResidual.coefficient_loss` fits them to labels.
 
 Schemes for ``Phi_h``:
@@ -61,9 +62,9 @@ class PhysicsResidual:
         n_intermediate: ``N``, the number of states the model emits per control step.
         scheme: ``"etd"`` or ``"solver"`` (see the module docstring).
         units: ``"substep"`` or ``"step"``: the units of the loss (see the module docstring).
-        learned: coefficients of ``physics`` to learn (name -> ``None`` or ``(low, high)``; PDEs and the
+        learned: coefficients of ``physics`` to learn (name -> ``None`` or ``(low, high)``; for a PDE with the
             ``"etd"`` scheme only); ``physics`` holds their starting values (the prior). ``"correction"`` adds
-            a learned linear correction (:class:`~pimbrl.models.coefficients.LearnedCoefficients`).
+            a learned linear correction (PDEs; :class:`~pimbrl.models.coefficients.LearnedCoefficients`).
         correction_penalty: weight of the correction's size.
     """
 
@@ -108,7 +109,7 @@ class PhysicsResidual:
         #: the trainable coefficients (``None``: the prior's values, fixed)
         self.coefficients: LearnedCoefficients | None = None
         if learned:
-            if self._etd is None:
+            if pde is not None and self._etd is None:
                 raise ValueError("learned coefficients need the etd residual (--dyna.residual etd), not the solver's")
             self.coefficients = LearnedCoefficients(physics, learned, penalty=correction_penalty)
 
@@ -157,6 +158,11 @@ class PhysicsResidual:
             f = pde.forcing(a)
             return etd.step(u, lambda v: pde.nonlinear(v, f))
         phys = self.physics
+        if self.coefficients is not None:  # an ODE system stepped with its learned coefficients
+            values = self.coefficients.values()
+            if not fit:
+                values = {k: v.detach() for k, v in values.items()}
+            phys = phys.with_coefficient_tensors(values)
         return phys.step(u, a, substeps=phys.substeps // self.n)
 
     def defects(self, u0: torch.Tensor, path: torch.Tensor, a: torch.Tensor) -> torch.Tensor:

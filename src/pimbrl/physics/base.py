@@ -13,12 +13,13 @@ torch tensors of any floating dtype, batched over leading dimensions; the state 
 
 from __future__ import annotations
 
+import copy
 import difflib
 import functools
 import inspect
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 import numpy as np
@@ -26,7 +27,7 @@ import torch
 
 Array = TypeVar("Array", np.ndarray, torch.Tensor)
 
-__all__ = ["Array", "Physics", "check_coefficient", "records_arguments", "superpose", "xp_of"]
+__all__ = ["Array", "Physics", "active", "check_coefficient", "records_arguments", "superpose", "xp_of"]
 
 PhysicsT = TypeVar("PhysicsT", bound="Physics")
 InitT = TypeVar("InitT", bound=Callable[..., None])
@@ -60,6 +61,16 @@ def check_coefficient(system: str, name: str, value: float, *, positive: bool = 
         need = " > 0" if positive else " >= 0" if nonnegative else ""
         raise ValueError(f"{system}: {name} must be a finite number{need}, got {value!r}")
     return v
+
+
+def active(coefficient: float | torch.Tensor) -> bool:
+    """Whether a term with this coefficient must be computed: a nonzero number, or any tensor.
+
+    Terms a system lacks by default (a friction, a damping) are skipped at 0 so that the default dynamics
+    stay bit for bit those of the reference implementation; a tensor coefficient (being learned, see
+    :meth:`Physics.with_coefficient_tensors`) always keeps its term, so that its gradient exists even at 0.
+    """
+    return isinstance(coefficient, torch.Tensor) or coefficient != 0.0
 
 
 def xp_of(x: Any) -> Any:
@@ -135,6 +146,35 @@ class Physics(ABC):
         if not hasattr(self, "_arguments"):
             raise TypeError(f"{type(self).__name__}.__init__ is not decorated with @records_arguments")
         return type(self)(**{**self._arguments, **{k: float(v) for k, v in values.items()}})
+
+    #: whether :meth:`with_coefficient_tensors` works (the ODE systems: their equations are written once for
+    #: floats and tensors alike); the PDEs expose their differentiable parts through ``operators`` instead
+    tensor_coefficients: bool = False
+
+    def with_coefficient_tensors(self: PhysicsT, values: Mapping[str, torch.Tensor]) -> PhysicsT:
+        """A copy whose coefficients ``values`` are tensors, so that its steps are differentiable in them.
+
+        For fitting coefficients to data (the inverse problem): ``copy.step(u, a)`` on torch tensors carries
+        the gradient to ``values``. Terms skipped at a zero float coefficient are computed for a tensor one
+        (:func:`active`). The copy is for torch computations only.
+
+        Raises:
+            ValueError: for a system without this ability (see :attr:`tensor_coefficients`) or an unknown name.
+        """
+        if not self.tensor_coefficients:
+            raise ValueError(f"{self.name}: coefficients cannot be given as tensors (only the ODE systems take them)")
+        unknown = [name for name in values if name not in self.coefficients]
+        if unknown:
+            known = ", ".join(self.coefficients)
+            raise ValueError(f"{self.name} has no coefficient {unknown[0]!r}; its coefficients are: {known}")
+        out = copy.copy(self)
+        for name, value in values.items():
+            setattr(out, name, value)
+        out._derive_coefficients()
+        return out
+
+    def _derive_coefficients(self) -> None:  # noqa: B027 - optional hook, empty by default
+        """Recompute the attributes derived from the coefficients (none by default; see subclasses)."""
 
     @property
     def control_dt(self) -> float:

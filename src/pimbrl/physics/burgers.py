@@ -166,6 +166,7 @@ class Burgers(SemilinearPDE):
             upwind_backward=BURGERS_UPWIND,
             upwind_forward=None,
             method="euler",
+            n=self.n,
         )
 
     def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

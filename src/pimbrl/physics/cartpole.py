@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from .base import Array, Physics, check_coefficient, records_arguments, xp_of
+from .base import Array, Physics, active, check_coefficient, records_arguments, xp_of
 
 __all__ = ["CartPole"]
 
@@ -62,6 +62,7 @@ class CartPole(Physics):
 
     name = "cartpole"
     coefficients = ("gravity", "masscart", "masspole", "length", "cart_friction", "pole_friction")
+    tensor_coefficients = True
 
     @records_arguments
     def __init__(
@@ -83,8 +84,7 @@ class CartPole(Physics):
         self.length = check_coefficient("CartPole", "length", length, positive=True)  # half the pole's length
         self.cart_friction = check_coefficient("CartPole", "cart_friction", cart_friction, nonnegative=True)
         self.pole_friction = check_coefficient("CartPole", "pole_friction", pole_friction, nonnegative=True)
-        self.total_mass = self.masspole + self.masscart
-        self.polemass_length = self.masspole * self.length
+        self._derive_coefficients()
         self.force_mag = float(force_mag)
         self.dt = float(tau)
         self.substeps = 1
@@ -94,6 +94,11 @@ class CartPole(Physics):
         self.action_dim = 1
         self.action_low = np.array([-self.force_mag])
         self.action_high = np.array([self.force_mag])
+
+    def _derive_coefficients(self) -> None:
+        """The total mass and the pole's mass times half-length, as Gymnasium computes them."""
+        self.total_mass = self.masspole + self.masscart
+        self.polemass_length = self.masspole * self.length
 
     def rhs(self, u: Array, a: Array) -> Array:
         """Gymnasium's cart-pole equations of motion, with Barto et al.'s friction terms where nonzero.
@@ -106,11 +111,11 @@ class CartPole(Physics):
         costheta = xp.cos(theta)
         sintheta = xp.sin(theta)
         numerator = force + self.polemass_length * (theta_dot * theta_dot) * sintheta
-        if self.cart_friction != 0.0:  # each friction term is skipped at 0: the defaults stay Gymnasium's
+        if active(self.cart_friction):  # each friction term is skipped at 0: the defaults stay Gymnasium's
             numerator = numerator - self.cart_friction * xp.sign(x_dot)
         temp = numerator / self.total_mass
         angular = self.gravity * sintheta - costheta * temp
-        if self.pole_friction != 0.0:
+        if active(self.pole_friction):
             angular = angular - self.pole_friction * theta_dot / self.polemass_length
         thetaacc = angular / (self.length * (4.0 / 3.0 - self.masspole * (costheta * costheta) / self.total_mass))
         xacc = temp - self.polemass_length * thetaacc * costheta / self.total_mass

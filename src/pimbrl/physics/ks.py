@@ -221,6 +221,7 @@ class KuramotoSivashinsky(SemilinearPDE):
             method="rk4",
             integrand_a=KS_D2,
             integrand_c=KS_D1,  # always: terms then serve every reward mode (the pools rely on it)
+            n=self.n,
         )
 
     def advance_terms(self, u: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

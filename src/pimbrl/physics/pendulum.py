@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Physics, check_coefficient, records_arguments, xp_of
+from .base import Array, Physics, active, check_coefficient, records_arguments, xp_of
 
 __all__ = ["Pendulum", "wrap_angle"]
 
@@ -48,6 +48,7 @@ class Pendulum(Physics):
 
     name = "pendulum"
     coefficients = ("g", "m", "l", "damping")
+    tensor_coefficients = True
 
     @records_arguments
     def __init__(
@@ -72,6 +73,10 @@ class Pendulum(Physics):
         self.action_dim = 1
         self.action_low = np.array([-self.max_torque])
         self.action_high = np.array([self.max_torque])
+        self._derive_coefficients()
+
+    def _derive_coefficients(self) -> None:
+        """``3 g / (2 l)`` and ``3 / (m l^2)``, in Gymnasium's operation order."""
         self._gravity_coef = 3 * self.g / (2 * self.l)
         self._torque_coef = 3.0 / (self.m * self.l**2)
 
@@ -83,7 +88,7 @@ class Pendulum(Physics):
         xp = xp_of(u)
         theta, theta_dot = u[..., 0], u[..., 1]
         torque = a[..., 0]
-        if self.damping != 0.0:  # skipped at 0, so that the default stays Gymnasium's bit for bit
+        if active(self.damping):  # skipped at 0, so that the default stays Gymnasium's bit for bit
             torque = torque - self.damping * theta_dot
         return xp.stack([theta_dot, self._gravity_coef * xp.sin(theta) + self._torque_coef * torque], -1)
 

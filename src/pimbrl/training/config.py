@@ -142,9 +142,9 @@ class DynaConfig:
     )
     learn_coefficients: str = param(
         "",
-        "pimbrl, PDEs: coefficients of the physics loss fitted to the labelled transitions, comma-separated, "
-        "each name or name:low:high (e.g. nu or damping:0:1), starting from the prior's values; 'correction' adds "
-        "a learned linear correction for what no coefficient expresses",
+        "pimbrl: coefficients of the physics loss fitted to the labelled transitions, comma-separated, "
+        "each name or name:low:high (e.g. nu or damping:0:1), starting from the prior's values; 'correction' (PDEs) "
+        "adds a learned linear correction for what no coefficient expresses",
     )
     correction_penalty: float = param(
         1e-6,
@@ -295,8 +295,6 @@ PDE_ONLY = (
     "residual",
     "model",
     "reward_quadrature",
-    "learn_coefficients",
-    "coefficient_lr",
     "correction_penalty",
 )
 
@@ -562,6 +560,11 @@ def check_coefficients(cfg: TrainConfig) -> None:
     if not prior and not learned:
         return
     names = physics_coefficient_names(cfg.env)
+    if "correction" in learned and not is_pde_env(cfg.env):
+        raise ConfigError(
+            f"dyna.learn_coefficients: the learned correction is a linear operator on a PDE's grid (Burgers, "
+            f"Kuramoto-Sivashinsky), not for {cfg.env}; name the coefficients to learn (its coefficients are: {', '.join(names)})"
+        )
     for field, given in (("dyna.physics_prior", prior), ("dyna.learn_coefficients", learned)):
         allowed = (*names, "correction") if field == "dyna.learn_coefficients" else names
         bad = [name for name in given if name not in allowed]

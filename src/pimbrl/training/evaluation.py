@@ -5,6 +5,9 @@
   (disjoint from the training pool), or states drawn once with ``eval_seed`` for the others;
 * other Gymnasium environments: episodes one after another, reset with seeds ``eval_seed + i``.
 
+A pimbrl task may define further protocols (``protocol=``): KS has ``"authors"``, the 5 fixed training
+states the paper's mean return is reported on (:meth:`pimbrl.envs.ks.KSTask.protocol_initial_states`).
+
 The same states are used at every evaluation of a run and by every run with the same settings, so
 learning curves of different methods are comparable point by point.
 """
@@ -39,6 +42,11 @@ class EvalResult:
         """Mean return over the episodes."""
         return float(self.returns.mean())
 
+    def quartiles(self) -> dict[str, float]:
+        """First quartile, median and third quartile of the returns (linear interpolation, as ``numpy.quantile``)."""
+        q25, q50, q75 = np.quantile(self.returns, [0.25, 0.5, 0.75])
+        return {"return_q25": float(q25), "return_median": float(q50), "return_q75": float(q75)}
+
     def summary(self) -> dict[str, float]:
         """Mean, min, max and standard deviation of the returns, mean length and number of episodes."""
         r = self.returns
@@ -53,18 +61,28 @@ class EvalResult:
 
 
 class Evaluator:
-    """Runs test episodes of ``env_id`` for a policy; the initial states are fixed at construction."""
+    """Runs test episodes of ``env_id`` for a policy; the initial states are fixed at construction.
 
-    def __init__(self, env_id: str, env_kwargs: dict[str, Any], episodes: int, seed: int) -> None:
+    ``protocol`` chooses the initial states of a pimbrl environment (``"test"``, the default: the held-out
+    test states; see :meth:`pimbrl.envs.task.Task.protocol_initial_states`); a protocol with a fixed number
+    of episodes (KS ``"authors"``: 5) takes ``episodes=None``.
+    """
+
+    def __init__(self, env_id: str, env_kwargs: dict[str, Any], episodes: int | None, seed: int, protocol: str = "test") -> None:
         self.env_id = env_id
-        self.episodes = int(episodes)
         self.seed = int(seed)
+        self.protocol = protocol
         probe = gym.make(env_id, **env_kwargs)
         self.adapter = ActionAdapter(probe.action_space)
         base = probe.unwrapped
         self.native = isinstance(base, PhysicsEnv)
+        if not self.native and protocol != "test":
+            raise ValueError(
+                f"evaluation protocol {protocol!r} is not defined for {env_id}: environments outside pimbrl have only 'test'"
+            )
         if isinstance(base, PhysicsEnv):
-            self.initial_states = base.task.test_initial_states(self.episodes, self.seed)
+            self.initial_states = base.task.protocol_initial_states(protocol, episodes, self.seed)
+            self.episodes = len(self.initial_states)
             self.vec = gym.make_vec(
                 env_id,
                 num_envs=self.episodes,
@@ -73,6 +91,9 @@ class Evaluator:
                 **env_kwargs,
             )
         else:
+            if episodes is None:
+                raise ValueError(f"evaluating {env_id} needs a number of episodes")
+            self.episodes = int(episodes)
             self.env = probe
 
     def run(self, policy: Policy) -> EvalResult:

@@ -1,0 +1,96 @@
+"""Evaluate the latest checkpoint of finished runs on two protocols: held-out test states and the authors' 5.
+
+For each run directory given (e.g. every ``<method>/seed<k>`` of a ``pimbrl compare`` directory), the
+deterministic policy of its latest checkpoint is run
+
+* on the run's own held-out test states (``test``: KS, the 200 states of the test pool), and
+* on the 5 fixed training-pool states the paper reports its mean return on (``authors``: rows 0, 49, 99,
+  149, 199; see :meth:`pimbrl.envs.ks.KSTask.protocol_initial_states`),
+
+and the mean, quartiles, minimum and maximum of the returns are printed and recorded per run, with the
+mean over the runs of each label (the name of the directory holding ``seed<k>``, as ``pimbrl compare`` lays
+out e.g. ``mfrl-matched/seed0``, else the run's method). Runs are only
+read (``pimbrl.training.load_run``), so a run still in progress can be evaluated at its last checkpoint.
+
+Usage::
+
+    python benchmarks/eval_protocols.py /work/ks/cmp/*/seed* --threshold -55 --name ks_protocols
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+import _common
+
+from pimbrl.training import Evaluator, load_run
+
+PROTOCOLS = ("test", "authors")
+
+
+def evaluate(run_dir: Path) -> dict:
+    """Method, seed, step and, per protocol, the return statistics and returns of one run's latest checkpoint."""
+    run = load_run(run_dir)
+    if not run.run_dir.checkpoint_path.exists():
+        raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
+    cfg = run.cfg
+    label = run_dir.parent.name if run_dir.name.startswith("seed") else cfg.method
+    row: dict = {"run_dir": str(run_dir), "label": label, "method": cfg.method, "seed": cfg.seed, "step": run.t}
+    for protocol in PROTOCOLS:
+        if protocol == "test":
+            evaluator = run.evaluator
+        else:
+            evaluator = Evaluator(cfg.env, cfg.env_kwargs, None, cfg.eval_seed, protocol=protocol)
+        result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
+        row[protocol] = {**result.summary(), **result.quartiles(), "returns": result.returns.tolist()}
+    return row
+
+
+def by_label(rows: list[dict], threshold: float | None) -> dict:
+    """Per label and protocol: mean over the runs of the mean return, its range, and runs at or above ``threshold``."""
+    out: dict = {}
+    for label in sorted({r["label"] for r in rows}):
+        runs = [r for r in rows if r["label"] == label]
+        entry: dict = {"seeds": [r["seed"] for r in runs], "steps": [r["step"] for r in runs]}
+        for protocol in PROTOCOLS:
+            means = [r[protocol]["return_mean"] for r in runs]
+            entry[protocol] = {
+                "return_mean": statistics.fmean(means),
+                "range": [min(means), max(means)],
+                "median_of_medians": statistics.median(r[protocol]["return_median"] for r in runs),
+            }
+            if threshold is not None:
+                entry[protocol]["runs_at_threshold"] = sum(m >= threshold for m in means)
+        out[label] = entry
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dirs", nargs="+", type=Path)
+    parser.add_argument("--threshold", type=float, default=None, help="count the runs whose mean return reaches it")
+    parser.add_argument("--name", default=None, help="record benchmarks/results/<name>.json")
+    args = parser.parse_args()
+    rows = []
+    for run_dir in args.run_dirs:
+        row = evaluate(run_dir)
+        rows.append(row)
+        parts = [
+            f"{p} mean {row[p]['return_mean']:8.2f} (quartiles {row[p]['return_q25']:.1f}/{row[p]['return_median']:.1f}/"
+            f"{row[p]['return_q75']:.1f}, min {row[p]['return_min']:.1f}, max {row[p]['return_max']:.1f})"
+            for p in PROTOCOLS
+        ]
+        print(f"{row['label']:>13s} seed {row['seed']} step {row['step']:>7,d}  " + "  ".join(parts), flush=True)
+    summary = by_label(rows, args.threshold)
+    for label, entry in summary.items():
+        parts = [f"{p} {entry[p]['return_mean']:.2f} [{entry[p]['range'][0]:.2f}, {entry[p]['range'][1]:.2f}]" for p in PROTOCOLS]
+        print(f"{label:>13s} ({len(entry['seeds'])} runs at steps {entry['steps']}): " + ", ".join(parts))
+    if args.name:
+        path = _common.record(args.name, {"threshold": args.threshold, "runs": rows, "by_label": summary})
+        print(f"recorded {path}")
+
+
+if __name__ == "__main__":
+    main()
