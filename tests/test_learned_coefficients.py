@@ -316,3 +316,117 @@ def test_a_pendulum_run_with_a_wrong_length_learns_it(tmp_path) -> None:
     report = json.loads((run / "coefficients.json").read_text())
     assert report["environment"]["l"] == 1.3 and report["prior"]["l"] == 1.0
     assert abs(report["current"]["l"] - 1.3) < 0.3 / 2  # well on its way from the prior to the truth
+
+
+# ---------------------------------------------------------------------- a learned actuator width on the model side
+WIDTH_PRIOR, WIDTH_TRUE = 1 / 15, 0.0866667  # Burgers: the true actuators 30 % wider than the prior believes
+
+
+def _burgers_width_data(n: int = 64) -> tuple:
+    """Labelled Burgers transitions of a system whose actuators are 30 % wider than the prior's."""
+    from pimbrl.models import TransitionData
+
+    system = Burgers(actuator_width=WIDTH_TRUE)
+    rng = np.random.default_rng(2)
+    u = 0.3 + 0.05 * rng.normal(size=(n, system.n))
+    a = rng.uniform(system.action_low, system.action_high, size=(n, 2))
+    u1, _ = system.advance(u, a, np.zeros(n, dtype=np.int64))
+    return TransitionData(*(torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1)))
+
+
+def test_the_equivariant_models_forcing_input_follows_the_learned_width() -> None:
+    prior = Burgers(actuator_width=WIDTH_PRIOR)
+    model = make_model(prior, kind="equivariant")
+    residual = PhysicsResidual(prior, 5, learned={"actuator_width": None})
+    trainer = ModelTrainer(model, residual, coefficient_lr=2e-2)
+    trainer.fit(20, 32, np.random.default_rng(0), labelled=_burgers_width_data())
+    assert residual.coefficients is not None
+    width = residual.coefficients.current()["actuator_width"]
+    assert abs(width - WIDTH_TRUE) < abs(WIDTH_PRIOR - WIDTH_TRUE) / 2  # on its way to the truth
+    expected = torch.as_tensor(prior.with_coefficients(actuator_width=width).actuator_shapes, dtype=torch.float32)
+    shapes = model.get_buffer("shapes")
+    assert torch.equal(shapes, expected)  # the current width, not the prior's
+    assert not shapes.requires_grad  # the data loss never reaches the width
+    assert all(p is not residual.coefficients.theta for p in model.parameters())
+    with pytest.raises(ValueError, match=r"actuator shapes must have shape \(2, 150\), got \(3, 150\)"):
+        model.set_actuator_shapes(np.ones((3, 150)))
+
+
+def test_a_learned_coefficient_other_than_the_width_leaves_the_forcing_input_alone() -> None:
+    prior = Burgers(nu=0.01)
+    model = make_model(prior, kind="equivariant")
+    before = model.get_buffer("shapes").clone()
+    trainer = ModelTrainer(model, PhysicsResidual(prior, 5, learned={"nu": None}), coefficient_lr=2e-2)
+    trainer.fit(5, 32, np.random.default_rng(0), labelled=_burgers_width_data())
+    assert torch.equal(model.get_buffer("shapes"), before)
+
+
+def test_a_range_with_values_the_physics_refuses_is_an_error() -> None:
+    with pytest.raises(ValueError, match=r"learned coefficient nu: its range \[-1.0, 1.0\] admits a bad value .*nu must be"):
+        LearnedCoefficients(Burgers(), {"nu": (-1.0, 1.0)})
+
+
+def _ks_dyna(tmp_path, name: str):
+    """The model side of a KS pimbrl run (equivariant model) whose prior's actuators are 30 % too narrow."""
+    from pimbrl.training import build_run
+    from pimbrl.training.cli_args import config_from_argv
+
+    from .test_training import POOL
+
+    pool = json.loads(POOL)
+    argv = [
+        "ks", "--method", "pimbrl", "--env-kwargs", json.dumps({**pool, "actuator_width": 1.3}),
+        "--eval-episodes", "2", "--dyna.physics-prior", "actuator_width=1", "--dyna.learn-coefficients", "actuator_width", *TINY,
+    ]  # fmt: skip
+    run = build_run(config_from_argv(argv), RunDirectory(tmp_path / name), progress=False)
+    assert run.model is not None
+    return run.model
+
+
+def test_imagined_rewards_and_a_resumed_model_side_use_the_learned_width(tmp_path, ks_states) -> None:
+    """KS's reward holds ``mean(u f)``, so it depends on the actuator width: imagined rewards must use the
+    learned one, also after the model side is restored from a checkpoint."""
+    dyna = _ks_dyna(tmp_path, "a")
+    residual = dyna.trainer.residual
+    assert residual is not None and residual.coefficients is not None
+    with torch.no_grad():
+        residual.coefficients.theta.fill_(0.3)  # actuator_width = 1 + 1 * 0.3, as if fitted
+    dyna.trainer.follow_coefficients()
+    restored = _ks_dyna(tmp_path, "b")
+    restored.load_state_dict(dyna.state_dict())
+    assert restored.trainer.coefficients is not None
+    assert restored.trainer.coefficients.current()["actuator_width"] == pytest.approx(1.3)
+    assert torch.equal(restored.model.get_buffer("shapes"), dyna.model.get_buffer("shapes"))
+    assert restored.model_env.physics.coefficient_values()["actuator_width"] == pytest.approx(1.3)
+
+    rng = np.random.default_rng(0)
+    state = np.asarray(ks_states[:8], dtype=np.float64)
+    action = rng.uniform(-1, 1, size=(8, 4)).astype(np.float32)
+    k = np.zeros(8, dtype=np.int64)
+    nxt, reward, _, valid, phys_a = restored.model_env.step(state, k, action)
+    assert valid.all()
+    learned = KuramotoSivashinsky(actuator_width=1.3).reward(state, phys_a, nxt, k)
+    prior = KuramotoSivashinsky().reward(state, phys_a, nxt, k)
+    np.testing.assert_allclose(reward, learned, rtol=1e-12)
+    assert np.abs(reward - prior).max() > 1e-3 * np.abs(prior).max()  # the prior's shapes would give other rewards
+
+
+def test_a_run_learning_the_width_feeds_it_to_the_model_and_the_imagined_steps(tmp_path) -> None:
+    """Burgers, equivariant model, actuators 30 % wider than the prior's: after the run (no reload), the
+    forcing input and the imagined steps' physics hold the width of coefficients.json."""
+    from pimbrl.training import create_run, train
+    from pimbrl.training.cli_args import config_from_argv
+
+    argv = [
+        "burgers", *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl", "--dyna.model", "equivariant",
+        "--env-kwargs", json.dumps({"actuator_width": WIDTH_TRUE}), "--dyna.physics-prior", f"actuator_width={WIDTH_PRIOR}",
+        "--dyna.learn-coefficients", "actuator_width", "--dyna.coefficient-lr", "0.05",
+    ]  # fmt: skip
+    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    train(run)
+    width = json.loads((tmp_path / "run" / "coefficients.json").read_text())["current"]["actuator_width"]
+    assert abs(width - WIDTH_TRUE) < abs(WIDTH_PRIOR - WIDTH_TRUE) / 2
+    assert run.model is not None
+    assert run.model.model_env.physics.coefficient_values()["actuator_width"] == width
+    expected = Burgers(actuator_width=width).actuator_shapes
+    np.testing.assert_array_equal(run.model.model.get_buffer("shapes").numpy(), expected.astype(np.float32))

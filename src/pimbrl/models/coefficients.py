@@ -50,6 +50,20 @@ CORRECTION_NAMES = ("correction_u", "correction_u_x", "correction_u_xx", "correc
 CORRECTION_OF = {"drift": ("correction_u_x", -1.0), "damping": ("correction_u", -1.0)}
 
 
+def _check_range_is_admissible(physics: Physics, name: str, low: float, high: float) -> None:
+    """Refuse a range whose ends the physics itself refuses (a negative viscosity, a width of zero).
+
+    The model side judges imagined steps with the prior at the learned values
+    (:meth:`~pimbrl.models.residual.PhysicsResidual.current_physics`), so every value of the range must make a
+    valid system.
+    """
+    for end in (low, high):
+        try:
+            physics.with_coefficients(**{name: end})
+        except ValueError as error:
+            raise ValueError(f"learned coefficient {name}: its range [{low}, {high}] admits a bad value ({error})") from None
+
+
 class LearnedCoefficients(torch.nn.Module):
     """Trainable physical coefficients of a residual (a PDE's or an ODE system's), initialised at the prior's values.
 
@@ -109,6 +123,7 @@ class LearnedCoefficients(torch.nn.Module):
                         f"learned coefficient {name}: the prior's value {value} lies outside its range [{low}, {high}]; "
                         f"give the prior a value inside (e.g. --dyna.physics-prior {name}=...)"
                     )
+                _check_range_is_admissible(physics, name, low, high)
                 raw.append((value - low) / (high - low))
             self.prior[name] = value
         self.theta = torch.nn.Parameter(torch.tensor(raw, dtype=torch.float64))
@@ -160,10 +175,15 @@ class LearnedCoefficients(torch.nn.Module):
             return torch.zeros((), dtype=torch.float64)
         return self.penalty_weight * self.correction.pow(2).sum()
 
+    def named_values(self) -> dict[str, float]:
+        """The named coefficients' current values as floats (the correction, not a coefficient of the physics, left out)."""
+        with torch.no_grad():
+            return {name: float(v) for name, v in self.values().items()}
+
     def current(self) -> dict[str, float]:
         """The coefficients' current values as floats, and the correction's ``c_j`` in physical units."""
         with torch.no_grad():
-            out = {name: float(v) for name, v in self.values().items()}
+            out = self.named_values()
             if self.correction is not None:
                 out.update({n: float(t) * s for n, t, s in zip(CORRECTION_NAMES, self.correction, self._scale, strict=True)})
             return out

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -72,6 +73,9 @@ class TransitionModel(nn.Module):
     def normalize(self, u: torch.Tensor) -> torch.Tensor:
         """Standardise states with the fitted mean and standard deviation."""
         return (u - self.state_mean) / self.state_std
+
+    def set_actuator_shapes(self, shapes: np.ndarray | torch.Tensor) -> None:
+        """Take the actuator shapes ``(action_dim, n)`` a learned width gives; a model with no forcing input ignores them."""
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         """Predicted states ``(B, n_intermediate, state_dim)`` from ``u`` ``(B, state_dim)`` and ``a`` ``(B, action_dim)``."""
@@ -205,6 +209,20 @@ class EquivariantConvModel(TransitionModel):
         self.out = CircularConv(channels, self.n_intermediate, kernel)
 
     shapes: torch.Tensor
+
+    @torch.no_grad()
+    def set_actuator_shapes(self, shapes: np.ndarray | torch.Tensor) -> None:
+        """Use ``shapes`` ``(action_dim, n)`` for the forcing input from now on (a copy, without gradient).
+
+        With a learned actuator width the forcing input follows the width the equation identified; the
+        network's data loss never moves the width (it is not a parameter of the network).
+        """
+        new = torch.as_tensor(shapes).detach().to(self.shapes.dtype)
+        if new.shape != self.shapes.shape:
+            raise ValueError(f"actuator shapes must have shape {tuple(self.shapes.shape)}, got {tuple(new.shape)}")
+        if not bool(torch.isfinite(new).all()):
+            raise ValueError("actuator shapes must be finite")
+        self.shapes.copy_(new)
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """The ``n_intermediate`` predicted fields ``(B, N, n)``; the last is ``u_{t+1}``."""

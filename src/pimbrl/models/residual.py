@@ -39,6 +39,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Literal
 
+import numpy as np
 import torch
 
 from ..physics import Physics
@@ -111,6 +112,27 @@ class PhysicsResidual:
             if pde is not None and self._etd is None:
                 raise ValueError("learned coefficients need the etd residual (--dyna.residual etd), not the solver's")
             self.coefficients = LearnedCoefficients(physics, learned, penalty=correction_penalty)
+
+    def current_physics(self) -> Physics:
+        """The prior with its learned coefficients at their current values (the prior itself without any).
+
+        What the model side judges imagined steps with (rewards that depend on the actuator shapes, say); the
+        learned correction is not a coefficient of the physics and is left out.
+        """
+        values = self.coefficients.named_values() if self.coefficients is not None else {}
+        return self.physics.with_coefficients(**values) if values else self.physics
+
+    def actuator_shapes(self) -> np.ndarray:
+        """The actuator shapes ``(action_dim, n)`` at the current learned coefficients (float64, no gradient).
+
+        The prior's own where no coefficient is learned. PDEs only (an ODE system has no actuator shapes).
+        """
+        if self._etd is None:
+            raise ValueError(f"{self.physics.name} has no actuator shapes: only the PDE systems (etd residual) do")
+        pde = self._etd[0]
+        if self.coefficients is None:
+            return pde.actuator_shapes
+        return np.asarray(pde.operators(self.coefficients.named_values())[2], dtype=np.float64)
 
     def coarse_step(self, u: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
         """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``.

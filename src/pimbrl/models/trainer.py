@@ -21,7 +21,10 @@ import torch
 from .networks import TransitionModel
 from .residual import PhysicsResidual
 
-__all__ = ["ModelTrainer", "TransitionData", "TransitionSource"]
+__all__ = ["ACTUATOR_WIDTH", "ModelTrainer", "TransitionData", "TransitionSource"]
+
+#: the coefficient that sets the actuator shapes, which a model may take as input (the PDE systems)
+ACTUATOR_WIDTH = "actuator_width"
 
 
 @dataclass(frozen=True)
@@ -143,7 +146,18 @@ class ModelTrainer:
         loss.backward()
         self.coefficient_optimizer.step()
         self.coefficients.project()
+        self.follow_coefficients()
         return float(loss.detach())
+
+    def follow_coefficients(self) -> None:
+        """Give the model's forcing input the actuator shapes of the current learned width (if it is learned).
+
+        Detached: the width is identified by the coefficient loss through the equation alone, never by the
+        network's data loss. Called after every coefficient step; nothing to do where the width is not learned.
+        """
+        if self.residual is None or self.coefficients is None or ACTUATOR_WIDTH not in self.coefficients.ranges:
+            return
+        self.model.set_actuator_shapes(self.residual.actuator_shapes())
 
     def fit(
         self,

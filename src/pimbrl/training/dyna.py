@@ -173,6 +173,7 @@ class DynaModel:
                     self.coefficient_history.append(
                         {"step": t, **coefficients.current(), "loss": self.metrics["model/coefficient_loss"]}
                     )
+                    self._follow_learned_coefficients()
             with timed("model_check"):
                 recent = BufferView(real, holdout_idx[-d.validation_size :]).all()  # oldest first: the most recent
                 self.val_mse = self.trainer.validation_mse(recent)
@@ -184,6 +185,16 @@ class DynaModel:
         if self.in_use and d.rollouts > 0:
             with timed("imagine"):
                 self.imagine(real, agent, d.rollouts)
+
+    def _follow_learned_coefficients(self) -> None:
+        """Judge imagined steps with the prior at the learned coefficients' current values (after a fit).
+
+        The imagined rewards, terminations and divergence bound then use, e.g., the actuator shapes of the
+        learned width (the KS reward's ``mean(u f)``); without learned coefficients this does nothing.
+        """
+        residual = self.trainer.residual
+        if residual is not None and residual.coefficients is not None:
+            self.model_env.physics = residual.current_physics()
 
     def _physics_started(self, n_real: int) -> bool:
         """PiMBRL with ``physics_start``: the physics loss from then on (alone before ``start_model_after``)."""
@@ -321,6 +332,7 @@ class DynaModel:
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
         self.coefficient_history = list(state.get("coefficient_history", []))
+        self._follow_learned_coefficients()  # imagined steps are judged at the restored learned values
 
 
 def no_change_mse(physics: Physics, data: TransitionData) -> float:
