@@ -10,7 +10,9 @@ deterministic policy of its latest checkpoint is run
 and the mean, quartiles, minimum and maximum of the returns are printed and recorded per run, with the
 mean over the runs of each label (the name of the directory holding ``seed<k>``, as ``pimbrl compare`` lays
 out e.g. ``mfrl-matched/seed0``, else the run's method). Runs are only
-read (``pimbrl.training.load_run``), so a run still in progress can be evaluated at its last checkpoint.
+read (``pimbrl.training.load_run``), so a run still in progress can be evaluated at its last checkpoint. A run
+made with another simulator kernel is refused: its KS training pool, hence the ``authors`` states, differ from
+this kernel's (evaluate it with the pimbrl it was made with).
 
 Usage::
 
@@ -26,6 +28,7 @@ from pathlib import Path
 import _common
 
 from pimbrl.training import Evaluator, load_run
+from pimbrl.training.rundir import kernel_note
 
 PROTOCOLS = ("test", "authors")
 
@@ -36,6 +39,9 @@ def evaluate(run_dir: Path) -> dict:
     if not run.run_dir.checkpoint_path.exists():
         raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
     cfg = run.cfg
+    note = kernel_note(run.run_dir.read_config().get("versions", {}))
+    if note:  # the 'authors' rows would not all be states the agent trained on
+        raise SystemExit(f"{run_dir}: {note}")
     label = run_dir.parent.name if run_dir.name.startswith("seed") else cfg.method
     row: dict = {"run_dir": str(run_dir), "label": label, "method": cfg.method, "seed": cfg.seed, "step": run.t}
     for protocol in PROTOCOLS:

@@ -96,3 +96,13 @@ def test_a_buffer_that_overwrote_entries_does_not_grow() -> None:
     wrapped = _filled(5, 7)
     with pytest.raises(ValueError, match="capacity 5 differs from 8"):
         _filled(8, 0).load_state_dict(wrapped.state_dict())
+
+
+def test_kernel_note_names_a_run_made_with_another_simulator_kernel() -> None:
+    from pimbrl.physics.kernels import GENERATOR_VERSION
+    from pimbrl.training.rundir import kernel_note, package_versions
+
+    assert package_versions()["kernel"] == GENERATOR_VERSION
+    assert kernel_note(package_versions()) is None
+    assert "before version 5 (not recorded)" in (kernel_note({"pimbrl": "0.1"}) or "")
+    assert f"made with simulator kernel 3, this pimbrl has kernel {GENERATOR_VERSION}" in (kernel_note({"kernel": "3"}) or "")

@@ -72,3 +72,14 @@ def test_bad_pool_arguments() -> None:
         gym.make("pimbrl/KuramotoSivashinsky-v0", initial_states="holdout")
     with pytest.raises(ValueError, match="shape"):
         gym.make("pimbrl/KuramotoSivashinsky-v0", initial_states=np.zeros((3, 10)))
+
+
+def test_pools_are_cached_per_simulator_kernel(monkeypatch) -> None:
+    """A new kernel changes the chaotic runs at round-off: its pools must not be those of the previous one."""
+    from pimbrl.envs import ks_states
+    from pimbrl.physics import KuramotoSivashinsky
+
+    physics, cfg = KuramotoSivashinsky(), ks_states.KSPoolConfig()
+    key = ks_states._cache_key(physics, cfg)
+    monkeypatch.setattr(ks_states, "GENERATOR_VERSION", "999")
+    assert ks_states._cache_key(physics, cfg) != key

@@ -316,6 +316,22 @@ def test_a_pendulum_run_with_a_wrong_length_learns_it(tmp_path) -> None:
     report = json.loads((run / "coefficients.json").read_text())
     assert report["environment"]["l"] == 1.3 and report["prior"]["l"] == 1.0
     assert abs(report["current"]["l"] - 1.3) < 0.3 / 2  # well on its way from the prior to the truth
+    # the model side judges imagined steps with the learned length (restored from the checkpoint here)
+    from pimbrl.training import load_run
+
+    loaded = load_run(run)
+    assert loaded.model is not None
+    assert loaded.model.model_env.physics.l == report["current"]["l"]
+
+
+def test_a_free_coefficient_from_zero_that_cannot_be_negative_needs_a_range() -> None:
+    with pytest.raises(ValueError, match=r"its prior is 0 and pendulum refuses negative values.*e\.g\. damping:0:1"):
+        LearnedCoefficients(Pendulum(), {"damping": None})
+    with pytest.raises(ConfigError, match=r"give it a range, e\.g\. pole_friction:0:1"):
+        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "pole_friction"})
+    assert LearnedCoefficients(Pendulum(), {"damping": (0.0, 1.0)}).current() == {"damping": 0.0}
+    # a coefficient that may be negative (a drift) is learned free from 0
+    assert LearnedCoefficients(Burgers(), {"drift": None}).current() == {"drift": 0.0}
 
 
 # ---------------------------------------------------------------------- a learned actuator width on the model side

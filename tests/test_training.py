@@ -88,7 +88,9 @@ SMOKE = {
 
 
 @pytest.mark.parametrize("env", list(SMOKE))
-def test_cli_train_eval_plot_smoke(env: str, tmp_path, capsys) -> None:
+def test_cli_train_eval_plot_smoke(env: str, tmp_path, capsys, monkeypatch) -> None:
+    from pimbrl.envs import KSTask
+
     run = tmp_path / "run"
     assert main(["train", env, "--run-dir", str(run), *SMOKE[env], *TINY]) == 0
     payload = json.loads((run / "config.json").read_text())
@@ -100,9 +102,17 @@ def test_cli_train_eval_plot_smoke(env: str, tmp_path, capsys) -> None:
     capsys.readouterr()
     assert main(["eval", str(run)]) == 0
     assert "return mean" in capsys.readouterr().out
-    if env != "ks":  # KS's 'authors' protocol needs the full training pool (tests/test_envs.py covers it)
+    if env != "ks":
         assert main(["eval", str(run), "--protocol", "authors"]) == 2
         assert "protocol 'authors' is not defined" in capsys.readouterr().err
+    else:  # the paper's rows need the full training pool; this run's small one holds 24 states
+        monkeypatch.setattr(KSTask, "AUTHORS_EVAL_ROWS", (0, 7, 23))
+        assert main(["eval", str(run), "--protocol", "authors", "--json"]) == 0
+        out = capsys.readouterr().out
+        assert "3 authors-protocol episodes" in out
+        payload = json.loads(out.strip().splitlines()[-1])
+        assert payload["protocol"] == "authors" and len(payload["returns"]) == 3
+        assert payload["return_q25"] <= payload["return_median"] <= payload["return_q75"]
     assert main(["plot", str(run), "--out", str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.png").stat().st_size > 5_000
     # resuming a finished run does nothing

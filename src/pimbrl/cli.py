@@ -202,6 +202,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         extend_run(args.run_dir, args.total_steps)
         print(f"{args.run_dir}: total_steps raised to {args.total_steps:,d}", file=sys.stderr)
     run = open_run(args.run_dir, progress=not args.quiet)
+    _print_kernel_note(run)
     if run.finished:
         train(run)  # repairs a "running" status left by a kill after the final checkpoint
         print(f"{args.run_dir} has already finished ({run.t:,d} steps); nothing to do")
@@ -209,6 +210,16 @@ def _cmd_resume(args: argparse.Namespace) -> int:
     print(f"resuming {args.run_dir} at step {run.t:,d}", file=sys.stderr)
     _print_summary(args.run_dir, _train(args, run))
     return 0
+
+
+def _print_kernel_note(run: Any) -> None:
+    """Say so on stderr where a PDE run was made with another simulator kernel than this pimbrl's."""
+    from .training.config import is_pde_env
+    from .training.rundir import kernel_note
+
+    note = kernel_note(run.run_dir.read_config().get("versions", {})) if is_pde_env(run.cfg.env) else None
+    if note:
+        print(f"note: {note}", file=sys.stderr)
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
@@ -219,6 +230,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     run = load_run(args.run_dir)
     if not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
+    _print_kernel_note(run)
     cfg = run.cfg
     if args.protocol == "test":
         episodes = args.episodes or cfg.eval_episodes

@@ -20,7 +20,7 @@ Train and test pools come from disjoint sets of runs (independent seed streams),
 ever a training state. Pools are cached under :func:`pimbrl.physics.kernels.cache_dir`, keyed by the
 numerics, the simulator kernel's version and every generation parameter, and written atomically. The runs
 are chaotic, so round-off (another kernel, another CPU) changes the states slightly (the test pool by up to
-~1e-9 from kernel version 4 to 5) and can change which runs qualify (the training pool's composition).
+2.3e-9 from kernel version 4 to 5) and can change which runs qualify (the training pool's composition).
 Since the unforced runs *are* the uncontrolled episodes, the uncontrolled return of every pool state is recorded for free.
 """
 

@@ -188,7 +188,7 @@ class Task(ABC):
         return self.sample_initial_states(np.random.default_rng(seed), n)
 
     def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
-        """Initial states of the test episodes of an evaluation ``protocol`` (see :data:`EVAL_PROTOCOLS`).
+        """Initial states of the test episodes of an evaluation ``protocol`` (one of :attr:`eval_protocols`).
 
         ``"test"``: :meth:`test_initial_states` (``n`` required). Other protocols are defined by the tasks
         that have them (KS: ``"authors"``); asking another task for one is a ``ValueError``.

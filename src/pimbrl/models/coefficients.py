@@ -64,6 +64,21 @@ def _check_range_is_admissible(physics: Physics, name: str, low: float, high: fl
             raise ValueError(f"learned coefficient {name}: its range [{low}, {high}] admits a bad value ({error})") from None
 
 
+def _check_free_from_zero(physics: Physics, name: str) -> None:
+    """Refuse a free coefficient starting at 0 that the physics cannot take below 0 (a damping, a friction).
+
+    A free coefficient at 0 steps to either side, and the model side rebuilds the system at the learned values,
+    so a coefficient the system refuses below 0 must be learned within a range.
+    """
+    try:
+        physics.with_coefficients(**{name: -1e-12})
+    except ValueError:
+        raise ValueError(
+            f"learned coefficient {name}: its prior is 0 and {physics.name} refuses negative values, so it cannot be "
+            f"learned free from 0; give it a range, e.g. {name}:0:1"
+        ) from None
+
+
 class LearnedCoefficients(torch.nn.Module):
     """Trainable physical coefficients of a residual (a PDE's or an ODE system's), initialised at the prior's values.
 
@@ -115,6 +130,8 @@ class LearnedCoefficients(torch.nn.Module):
             value = prior[name]
             bounds = self.ranges[name]
             if bounds is None:
+                if value == 0.0:
+                    _check_free_from_zero(physics, name)
                 raw.append(0.0)
             else:
                 low, high = bounds

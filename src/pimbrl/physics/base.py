@@ -19,7 +19,7 @@ import functools
 import inspect
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 import numpy as np
@@ -133,12 +133,8 @@ class Physics(ABC):
             ValueError: for a name that is not one of :attr:`coefficients`, or a value that is not a finite
                 number.
         """
+        self._check_coefficient_names(values)
         for name, value in values.items():
-            if name not in self.coefficients:
-                known = ", ".join(self.coefficients) or "none"
-                close = difflib.get_close_matches(name, self.coefficients, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise ValueError(f"{self.name} has no coefficient {name!r}{hint}; its coefficients are: {known}")
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"{self.name}: coefficient {name} must be a finite number, got {value!r}")
         if not values:
@@ -163,15 +159,21 @@ class Physics(ABC):
         """
         if not self.tensor_coefficients:
             raise ValueError(f"{self.name}: coefficients cannot be given as tensors (only the ODE systems take them)")
-        unknown = [name for name in values if name not in self.coefficients]
-        if unknown:
-            known = ", ".join(self.coefficients)
-            raise ValueError(f"{self.name} has no coefficient {unknown[0]!r}; its coefficients are: {known}")
+        self._check_coefficient_names(values)
         out = copy.copy(self)
         for name, value in values.items():
             setattr(out, name, value)
         out._derive_coefficients()
         return out
+
+    def _check_coefficient_names(self, names: Iterable[str]) -> None:
+        """A one-line ``ValueError`` for a name that is not one of :attr:`coefficients` (with a did-you-mean hint)."""
+        for name in names:
+            if name not in self.coefficients:
+                known = ", ".join(self.coefficients) or "none"
+                close = difflib.get_close_matches(name, self.coefficients, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise ValueError(f"{self.name} has no coefficient {name!r}{hint}; its coefficients are: {known}")
 
     def _derive_coefficients(self) -> None:  # noqa: B027 - optional hook, empty by default
         """Recompute the attributes derived from the coefficients (none by default; see subclasses)."""

@@ -332,7 +332,8 @@ class DynaModel:
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
         self.coefficient_history = list(state.get("coefficient_history", []))
-        self._follow_learned_coefficients()  # imagined steps are judged at the restored learned values
+        if self.coefficient_history:  # imagined steps at the restored values; the prior until the first fit
+            self._follow_learned_coefficients()
 
 
 def no_change_mse(physics: Physics, data: TransitionData) -> float:

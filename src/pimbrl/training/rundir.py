@@ -46,6 +46,7 @@ import torch
 
 from ..config import ConfigError
 from ..fileio import atomic_write_bytes
+from ..physics.kernels import GENERATOR_VERSION
 
 __all__ = [
     "CHECKPOINT_VERSION",
@@ -55,6 +56,7 @@ __all__ = [
     "RunDirectory",
     "RunLockedError",
     "atomic_write_bytes",
+    "kernel_note",
     "pack_checkpoint",
     "package_versions",
     "steps_to_threshold",
@@ -182,7 +184,25 @@ def package_versions() -> dict[str, str]:
         "numpy": numpy.__version__,
         "gymnasium": gymnasium.__version__,
         "numba": numba.__version__,
+        "kernel": GENERATOR_VERSION,
     }
+
+
+def kernel_note(versions: dict[str, str]) -> str | None:
+    """A note where a run's recorded simulator kernel is not this pimbrl's (``None`` where it is).
+
+    The PDE kernels of different versions agree to round-off only, so a chaotic system's trajectories, and
+    the KS initial-state pools built from them (the training pool's composition), differ between them.
+    """
+    made = versions.get("kernel")
+    if made == GENERATOR_VERSION:
+        return None
+    made_with = f"simulator kernel {made}" if made else "a simulator kernel before version 5 (not recorded)"
+    return (
+        f"this run was made with {made_with}, this pimbrl has kernel {GENERATOR_VERSION}: the PDE simulations agree "
+        "to round-off only and the KS training pool differs (evaluate or resume it with the pimbrl it was made with "
+        "for the same states)"
+    )
 
 
 class CsvLog:
