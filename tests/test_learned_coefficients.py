@@ -408,12 +408,19 @@ def test_imagined_rewards_and_a_resumed_model_side_use_the_learned_width(tmp_pat
     with torch.no_grad():
         residual.coefficients.theta.fill_(0.3)  # actuator_width = 1 + 1 * 0.3, as if fitted
     dyna.trainer.follow_coefficients()
+    # as a model phase's fit does: the values go into the history (a run restored before any fit keeps the prior)
+    dyna.coefficient_history.append({"step": 0, **residual.coefficients.current(), "loss": 0.0})
+    restored_before_fit = _ks_dyna(tmp_path, "c")
     restored = _ks_dyna(tmp_path, "b")
     restored.load_state_dict(dyna.state_dict())
     assert restored.trainer.coefficients is not None
     assert restored.trainer.coefficients.current()["actuator_width"] == pytest.approx(1.3)
     assert torch.equal(restored.model.get_buffer("shapes"), dyna.model.get_buffer("shapes"))
     assert restored.model_env.physics.coefficient_values()["actuator_width"] == pytest.approx(1.3)
+    state_before_fit = dyna.state_dict()
+    state_before_fit["coefficient_history"] = []
+    restored_before_fit.load_state_dict(state_before_fit)
+    assert restored_before_fit.model_env.physics is restored_before_fit.trainer.residual.physics  # the prior itself
 
     rng = np.random.default_rng(0)
     state = np.asarray(ks_states[:8], dtype=np.float64)
