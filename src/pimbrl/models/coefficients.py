@@ -158,8 +158,8 @@ class LearnedCoefficients(torch.nn.Module):
         #: every learned quantity reported by :meth:`current`: the named coefficients, then the correction's
         self.names = (*self.ranges, *(CORRECTION_NAMES if self.correction is not None else ()))
 
-    def values(self) -> dict[str, torch.Tensor]:
-        """The coefficients' current values (float64 tensors, differentiable in :attr:`theta`)."""
+    def values(self, grad: bool = True) -> dict[str, torch.Tensor]:
+        """The coefficients' current values (float64 tensors, differentiable in :attr:`theta` unless ``grad=False``)."""
         out = {}
         for i, name in enumerate(self.ranges):
             bounds = self.ranges[name]
@@ -169,7 +169,7 @@ class LearnedCoefficients(torch.nn.Module):
             else:
                 low, high = bounds
                 out[name] = low + (high - low) * self.theta[i]
-        return out
+        return out if grad else {name: v.detach() for name, v in out.items()}
 
     @torch.no_grad()
     def project(self) -> None:
@@ -180,11 +180,12 @@ class LearnedCoefficients(torch.nn.Module):
             elif self.prior[name] > 0:  # prior + prior * theta >= prior / 100
                 self.theta[i].clamp_(min=-0.99)
 
-    def correction_symbol(self) -> torch.Tensor | None:
-        """Eigenvalues of the linear correction on the rfft modes (complex128, differentiable), or ``None``."""
+    def correction_symbol(self, grad: bool = True) -> torch.Tensor | None:
+        """The linear correction's eigenvalues on the rfft modes (complex128; differentiable unless ``grad=False``), or None."""
         if self.correction is None:
             return None
-        return (self.correction.to(torch.complex128)[:, None] * self._basis).sum(0)
+        symbol = (self.correction.to(torch.complex128)[:, None] * self._basis).sum(0)
+        return symbol if grad else symbol.detach()
 
     def penalty(self) -> torch.Tensor:
         """``penalty * sum_j theta_j^2`` of the correction (zero without one)."""

@@ -141,12 +141,8 @@ class PhysicsResidual:
         """
         if self._etd is not None and self.coefficients is not None:
             pde = self._etd[0]
-            values = self.coefficients.values()
-            correction = self.coefficients.correction_symbol()
-            if not fit:
-                values = {k: v.detach() for k, v in values.items()}
-                correction = None if correction is None else correction.detach()
-            lam, nonlinear_coef, shapes = pde.operators(values)
+            correction = self.coefficients.correction_symbol(grad=fit)
+            lam, nonlinear_coef, shapes = pde.operators(self.coefficients.values(grad=fit))
             if correction is not None:
                 lam = torch.as_tensor(lam).to(torch.complex128) + correction
             step = ETDRK4(torch.as_tensor(lam), pde.n, self.h)
@@ -159,10 +155,7 @@ class PhysicsResidual:
             return etd.step(u, lambda v: pde.nonlinear(v, f))
         phys = self.physics
         if self.coefficients is not None:  # an ODE system stepped with its learned coefficients
-            values = self.coefficients.values()
-            if not fit:
-                values = {k: v.detach() for k, v in values.items()}
-            phys = phys.with_coefficient_tensors(values)
+            phys = phys.with_coefficient_tensors(self.coefficients.values(grad=fit))
         return phys.step(u, a, substeps=phys.substeps // self.n)
 
     def defects(self, u0: torch.Tensor, path: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
