@@ -50,33 +50,38 @@ CORRECTION_NAMES = ("correction_u", "correction_u_x", "correction_u_xx", "correc
 CORRECTION_OF = {"drift": ("correction_u_x", -1.0), "damping": ("correction_u", -1.0)}
 
 
-def _check_range_is_admissible(physics: Physics, name: str, low: float, high: float) -> None:
-    """Refuse a range whose ends the physics itself refuses (a negative viscosity, a width of zero).
+def _refusal(physics: Physics, name: str, value: float) -> str | None:
+    """Why ``physics`` refuses ``name = value`` (its one-line error), or ``None`` where it takes it.
 
     The model side judges imagined steps with the prior at the learned values
-    (:meth:`~pimbrl.models.residual.PhysicsResidual.current_physics`), so every value of the range must make a
-    valid system.
+    (:meth:`~pimbrl.models.residual.PhysicsResidual.current_physics`), so every value a learned coefficient
+    can take must make a valid system.
     """
+    try:
+        physics.with_coefficients(**{name: value})
+    except ValueError as error:
+        return str(error)
+    return None
+
+
+def _check_range_is_admissible(physics: Physics, name: str, low: float, high: float) -> None:
+    """Refuse a range whose ends the physics itself refuses (a negative viscosity, a width of zero)."""
     for end in (low, high):
-        try:
-            physics.with_coefficients(**{name: end})
-        except ValueError as error:
-            raise ValueError(f"learned coefficient {name}: its range [{low}, {high}] admits a bad value ({error})") from None
+        error = _refusal(physics, name, end)
+        if error is not None:
+            raise ValueError(f"learned coefficient {name}: its range [{low}, {high}] admits a bad value ({error})")
 
 
 def _check_free_from_zero(physics: Physics, name: str) -> None:
     """Refuse a free coefficient starting at 0 that the physics cannot take below 0 (a damping, a friction).
 
-    A free coefficient at 0 steps to either side, and the model side rebuilds the system at the learned values,
-    so a coefficient the system refuses below 0 must be learned within a range.
+    A free coefficient at 0 steps to either side, so one the system refuses below 0 must be learned within a range.
     """
-    try:
-        physics.with_coefficients(**{name: -1e-12})
-    except ValueError:
+    if _refusal(physics, name, -1e-12) is not None:
         raise ValueError(
             f"learned coefficient {name}: its prior is 0 and {physics.name} refuses negative values, so it cannot be "
             f"learned free from 0; give it a range, e.g. {name}:0:1"
-        ) from None
+        )
 
 
 class LearnedCoefficients(torch.nn.Module):
