@@ -27,7 +27,7 @@ from pathlib import Path
 
 import _common
 
-from pimbrl.training import Evaluator, load_run
+from pimbrl.training import load_run
 from pimbrl.training.rundir import kernel_note
 
 PROTOCOLS = ("test", "authors")
@@ -45,11 +45,7 @@ def evaluate(run_dir: Path) -> dict:
     label = run_dir.parent.name if run_dir.name.startswith("seed") else cfg.method
     row: dict = {"run_dir": str(run_dir), "label": label, "method": cfg.method, "seed": cfg.seed, "step": run.t}
     for protocol in PROTOCOLS:
-        if protocol == "test":
-            evaluator = run.evaluator
-        else:
-            evaluator = Evaluator(cfg.env, cfg.env_kwargs, None, cfg.eval_seed, protocol=protocol)
-        result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
+        result = run.evaluator_for(protocol).run(lambda o: run.agent.act(o, deterministic=True))
         row[protocol] = {**result.summary(), **result.quartiles(), "returns": result.returns.tolist()}
     return row
 

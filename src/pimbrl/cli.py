@@ -225,19 +225,14 @@ def _print_kernel_note(run: Any) -> None:
 def _cmd_eval(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .training import Evaluator, load_run, steps_to_threshold
+    from .training import load_run, steps_to_threshold
 
     run = load_run(args.run_dir)
     if not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
     _print_kernel_note(run)
     cfg = run.cfg
-    if args.protocol == "test":
-        episodes = args.episodes or cfg.eval_episodes
-        same = episodes == cfg.eval_episodes
-        evaluator = run.evaluator if same else Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed)
-    else:
-        evaluator = Evaluator(cfg.env, cfg.env_kwargs, args.episodes, cfg.eval_seed, protocol=args.protocol)
+    evaluator = run.evaluator_for(args.protocol, args.episodes or None)
     result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     s = {**result.summary(), **result.quartiles()}
     print(

@@ -142,6 +142,13 @@ class Run:
         """The learned model of an mbrl/pimbrl run (``None`` for mfrl)."""
         return None if self.model is None else self.model.model
 
+    def evaluator_for(self, protocol: str = "test", episodes: int | None = None) -> Evaluator:
+        """An evaluator of this run's policy: its own for its test states, else one for ``protocol``/``episodes``."""
+        cfg = self.cfg
+        if protocol == "test" and episodes in (None, cfg.eval_episodes):
+            return self.evaluator
+        return Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed, protocol=protocol)
+
     # ------------------------------------------------------------------ checkpoint = the components' states
     def state_dict(self) -> dict[str, Any]:
         """The full training state: a dict of the components' state dicts."""
