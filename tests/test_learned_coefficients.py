@@ -152,15 +152,21 @@ def test_learned_coefficient_flags_are_refused_where_they_do_nothing(tmp_path) -
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
-def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients_json(tmp_path) -> None:
-    run = tmp_path / "run"
+def _train_with_wrong_prior(run, env: str, true: dict, prior: str, learn: str) -> dict:
+    """A small pimbrl run of ``env`` with coefficients ``true``, the model side held to ``prior`` and learning
+    ``learn``; returns its ``coefficients.json``."""
     args = [
-        "train", "burgers", "--method", "pimbrl", "--run-dir", str(run), *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL,
-        "--env-kwargs", '{"nu": 0.013}', "--dyna.physics-prior", "nu=0.01", "--dyna.learn-coefficients", "nu",
+        "train", env, "--method", "pimbrl", "--run-dir", str(run), *DYNA_SMOKE[env], *TINY, *SMALL_MODEL,
+        "--env-kwargs", json.dumps(true), "--dyna.physics-prior", prior, "--dyna.learn-coefficients", learn,
         "--dyna.coefficient-lr", "0.05",
     ]  # fmt: skip
     assert main(args) == 0
-    report = json.loads((run / "coefficients.json").read_text())
+    return json.loads((run / "coefficients.json").read_text())
+
+
+def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients_json(tmp_path) -> None:
+    run = tmp_path / "run"
+    report = _train_with_wrong_prior(run, "burgers", {"nu": 0.013}, "nu=0.01", "nu")
     assert report["environment"]["nu"] == 0.013 and report["prior"]["nu"] == 0.01
     assert report["learned"] == {"nu": None}
     history = report["history"]
@@ -307,13 +313,7 @@ def test_a_wrong_or_missing_ode_coefficient_is_identified_from_labelled_transiti
 
 def test_a_pendulum_run_with_a_wrong_length_learns_it(tmp_path) -> None:
     run = tmp_path / "run"
-    args = [
-        "train", "pendulum", "--method", "pimbrl", "--run-dir", str(run), *DYNA_SMOKE["pendulum"], *TINY, *SMALL_MODEL,
-        "--env-kwargs", '{"l": 1.3}', "--dyna.physics-prior", "l=1.0", "--dyna.learn-coefficients", "l",
-        "--dyna.coefficient-lr", "0.05",
-    ]  # fmt: skip
-    assert main(args) == 0
-    report = json.loads((run / "coefficients.json").read_text())
+    report = _train_with_wrong_prior(run, "pendulum", {"l": 1.3}, "l=1.0", "l")
     assert report["environment"]["l"] == 1.3 and report["prior"]["l"] == 1.0
     assert abs(report["current"]["l"] - 1.3) < 0.3 / 2  # well on its way from the prior to the truth
     # the model side judges imagined steps with the learned length (restored from the checkpoint here)
