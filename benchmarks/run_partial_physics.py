@@ -6,6 +6,8 @@ runs, over the seeds, with the same budget and the same evaluation states:
 * ``mbrl``: the data-only model (the prior judges imagined steps, but no physics loss);
 * ``pimbrl-wrong``: the physics loss of the wrong prior, fixed;
 * ``pimbrl-learned``: the physics loss with the ``--learn`` coefficients fitted to the labels, from the prior;
+* ``pimbrl-learned-correction`` (PDEs, ask for it with ``--variants``): the same plus the learned linear
+  correction for what no coefficient expresses, kept small by its penalty;
 * ``pimbrl-true``: the physics loss of the true system (the upper reference).
 
 Each run is a separate process (one thread), ``--jobs`` at a time; finished runs are skipped, interrupted
@@ -36,6 +38,7 @@ from pimbrl.training.cli_args import config_from_argv
 from pimbrl.training.rundir import steps_to_threshold
 
 VARIANTS = ("mbrl", "pimbrl-wrong", "pimbrl-learned", "pimbrl-true")
+OPTIONAL_VARIANTS = ("pimbrl-learned-correction",)
 
 
 def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
@@ -47,9 +50,19 @@ def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
         return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior]
     if variant == "pimbrl-learned":
         return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior, "--dyna.learn-coefficients", learn]
+    if variant == "pimbrl-learned-correction":
+        return [
+            "--method",
+            "pimbrl",
+            *env_kwargs,
+            "--dyna.physics-prior",
+            prior,
+            "--dyna.learn-coefficients",
+            f"{learn},correction",
+        ]
     if variant == "pimbrl-true":
         return ["--method", "pimbrl", *env_kwargs]
-    raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+    raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS + OPTIONAL_VARIANTS)}")
 
 
 def identified_within(history: list[dict], truth: dict[str, float], tolerance: float = 0.05) -> int | None:
@@ -103,9 +116,9 @@ def main() -> None:
     thresholds = [float(t) for t in args.thresholds.split(",")]
     variants = args.variants.split(",")
     specs = []
-    for variant in variants:
-        flags = variant_args(variant, args.true, args.prior, args.learn)
-        for seed in seeds:
+    for seed in seeds:  # seed by seed, so that runs cut short leave every variant on the first seeds
+        for variant in variants:
+            flags = variant_args(variant, args.true, args.prior, args.learn)
             argv = [args.env, "--seed", str(seed), "--threads", "1", "--steps", str(args.steps), *flags, *extra]
             specs.append(RunSpec(variant, seed, out / variant / f"seed{seed}", config_from_argv(argv)))
     if not args.no_run:
