@@ -30,6 +30,7 @@ from pathlib import Path
 
 import _common
 
+from pimbrl.cli import config_warnings
 from pimbrl.config import parse_prior
 from pimbrl.experiments.compare import RunSpec, run_all
 from pimbrl.models.coefficients import CORRECTION_OF
@@ -121,6 +122,8 @@ def main() -> None:
             flags = variant_args(variant, args.true, args.prior, args.learn)
             argv = [args.env, "--seed", str(seed), "--threads", "1", "--steps", str(args.steps), *flags, *extra]
             specs.append(RunSpec(variant, seed, out / variant / f"seed{seed}", config_from_argv(argv)))
+    for line in sorted({line for spec in specs for line in config_warnings(spec.config)}):
+        print(f"warning: {line}")
     if not args.no_run:
         run_all(specs, jobs=args.jobs)
     truth = parse_prior(args.true)

@@ -193,6 +193,23 @@ def test_a_budget_that_ends_before_warm_up_and_model_is_warned_about(capsys) -> 
     assert "--dyna.start-model-after" in err
 
 
+def test_the_preset_finetune_return_on_a_changed_system_is_warned_about(capsys) -> None:
+    # the KS preset switches to model-free fine-tuning at -55, a value on the default system's return scale
+    base = ["train", "ks", "--steps", "20000", "--env-kwargs", '{"convection": 1.3}', "--print-config"]
+    assert main([*base, "--method", "pimbrl"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: dyna.finetune_return = -55 (the preset's)" in err
+    assert "--env-kwargs (convection) change the system" in err and "--dyna.finetune-return" in err
+    for quiet in (
+        [*base, "--method", "pimbrl", "--dyna.finetune-return", "none"],  # switched off
+        [*base, "--method", "mbrl", "--dyna.finetune-return", "-30"],  # set for this system
+        [*base, "--method", "mfrl"],  # no model to leave
+        ["train", "ks", "--method", "pimbrl", "--steps", "20000", "--print-config"],  # the registered system
+    ):
+        assert main(quiet) == 0
+        assert "warning" not in capsys.readouterr().err, quiet
+
+
 def test_a_budget_past_warm_up_gets_no_warning(capsys) -> None:
     assert main(["train", "ks", "--method", "pimbrl", "--steps", "20000", "--print-config"]) == 0
     assert "warning" not in capsys.readouterr().err

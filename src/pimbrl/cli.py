@@ -15,7 +15,7 @@ from typing import Any
 
 from .config import ConfigError, add_arguments, overrides_from_args, to_dict
 
-__all__ = ["budget_warnings", "build_parser", "main"]
+__all__ = ["budget_warnings", "build_parser", "config_warnings", "main"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -138,6 +138,17 @@ def budget_warnings(cfg: Any) -> list[str]:
     return out
 
 
+def config_warnings(cfg: Any) -> list[str]:
+    """Everything ``pimbrl train`` and ``pimbrl compare`` warn about in a configuration.
+
+    :func:`budget_warnings`, then the preset values kept on another return scale
+    (:func:`~pimbrl.training.config.return_scale_warnings`).
+    """
+    from .training.config import return_scale_warnings
+
+    return [*budget_warnings(cfg), *return_scale_warnings(cfg)]
+
+
 def _check_run_dir(path: str | Path, flag: str = "--run-dir") -> None:
     """Refuse a run directory that cannot be created or written, before anything is made.
 
@@ -170,7 +181,7 @@ def _train(args: argparse.Namespace, run: Any) -> Any:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     cfg = _train_config_from_args(args)
-    for line in budget_warnings(cfg):
+    for line in config_warnings(cfg):
         print(f"pimbrl train: warning: {line}", file=sys.stderr)
     if args.print_config:  # the resolved configuration (defaults, preset, overrides); nothing is trained
         print(json.dumps(to_dict(cfg), indent=2))
@@ -333,7 +344,7 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         _check_run_dir(args.run_dir)
         warned = set()
         for spec in plan_runs(env_id, methods, seeds[:1], Path(args.run_dir), overrides):
-            for line in budget_warnings(spec.config):
+            for line in config_warnings(spec.config):
                 if (spec.label, line) not in warned:
                     warned.add((spec.label, line))
                     print(f"pimbrl compare: warning: {spec.label}: {line}", file=sys.stderr)

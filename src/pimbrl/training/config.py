@@ -59,6 +59,7 @@ __all__ = [
     "is_pde_env",
     "load_config_file",
     "resolve_config",
+    "return_scale_warnings",
     "typed_overrides",
 ]
 
@@ -425,6 +426,26 @@ def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
         if key not in names:
             takes = ", ".join(names) if names else "none"
             raise ConfigError(f"env_kwargs: {env} takes no keyword argument {key!r}{did_you_mean(key, names)}; it takes: {takes}")
+
+
+def return_scale_warnings(cfg: TrainConfig) -> list[str]:
+    """Preset settings measured in test returns, kept for an environment the run changes.
+
+    A preset's ``dyna.finetune_return`` (KS: -55) was set on the return scale of the environment as
+    registered; ``env_kwargs`` (other coefficients such as ``convection``, an actuator width, another
+    reward or initial-state pool) change that scale, so the switch to model-free fine-tuning can fire at
+    once or never. One line, with the flags to set, when the run keeps the preset's value; nothing otherwise.
+    """
+    if cfg.method not in ("mbrl", "pimbrl") or cfg.dyna.finetune_return is None or not cfg.env_kwargs:
+        return []
+    preset = PRESETS.get(cfg.env, {}).get("model_based", {}).get("dyna", {}).get("finetune_return")
+    if preset is None or cfg.dyna.finetune_return != preset:
+        return []
+    return [
+        f"dyna.finetune_return = {preset:g} (the preset's) switches to model-free fine-tuning at that test return, "
+        f"a value set for {cfg.env} as registered; --env-kwargs ({', '.join(cfg.env_kwargs)}) change the system and "
+        f"with it the scale of the returns: give --dyna.finetune-return for this system, or none to keep the model"
+    ]
 
 
 def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
