@@ -91,6 +91,30 @@ def identified_within(history: list[dict], truth: dict[str, float], tolerance: f
     return first
 
 
+def draw(specs: list[RunSpec], variants: list[str], path: Path, title: str) -> None:
+    """Learning curves: per variant, the mean over seeds of the mean test return, banded by the seeds' range.
+
+    (The band is the spread of the seeds' means, not of the test episodes, so that variants stay apart.)
+    """
+    import numpy as np
+
+    from pimbrl.plotting import plot_learning_curves
+
+    curves = []
+    for variant in variants:
+        runs = [RunDirectory(s.path).evaluations.read() for s in specs if s.label == variant]
+        runs = [r for r in runs if r]
+        if not runs:
+            continue
+        n = min(len(r) for r in runs)
+        means = np.array([[float(row["return_mean"]) for row in r[:n]] for r in runs])
+        steps = np.array([int(row["step"]) for row in runs[0][:n]])
+        label = f"{variant} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+        curves.append((label, steps, means.mean(axis=0), means.min(axis=0), means.max(axis=0)))
+    plot_learning_curves(curves, path, title=title)
+    print(f"figure: {path}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("env")
@@ -105,6 +129,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (one thread each)")
     parser.add_argument("--name", default=None, help="record as benchmarks/results/<name>.json")
     parser.add_argument("--no-run", action="store_true", help="summarise the runs as they are")
+    parser.add_argument(
+        "--figure", default=None, help="draw the learning curves here: per variant, the seeds' mean and their range"
+    )
     args, extra = parser.parse_known_args()
     extra = [a for a in extra if a != "--"]
     truth = parse_prior(args.true)
@@ -168,6 +195,8 @@ def main() -> None:
         if "identified" in r:
             within = r["within_5pct_from_step"]
             print(f"  {r['variant']} seed {r['seed']}: identified {r['identified']}, within 5 % from step {within}")
+    if args.figure:
+        draw(specs, variants, Path(args.figure), f"{args.env}: true {args.true}, prior {args.prior}")
     payload = {
         "env": args.env,
         "true": args.true,
