@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import statistics
 from pathlib import Path
 
@@ -127,6 +128,12 @@ def main() -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--out-dir", required=True)
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (one thread each)")
+    parser.add_argument(
+        "--pimbrl-args",
+        default="",
+        help="`pimbrl train` flags for the pimbrl variants only, e.g. '--dyna.physics-start 0' (flags after the "
+        "options go to every variant)",
+    )
     parser.add_argument("--name", default=None, help="record as benchmarks/results/<name>.json")
     parser.add_argument("--no-run", action="store_true", help="summarise the runs as they are")
     parser.add_argument(
@@ -147,6 +154,8 @@ def main() -> None:
     for seed in seeds:  # seed by seed, so that runs cut short leave every variant on the first seeds
         for variant in variants:
             flags = variant_args(variant, args.true, args.prior, args.learn)
+            if variant.startswith("pimbrl"):
+                flags += shlex.split(args.pimbrl_args)
             argv = [args.env, "--seed", str(seed), "--threads", "1", "--steps", str(args.steps), *flags, *extra]
             specs.append(RunSpec(variant, seed, out / variant / f"seed{seed}", config_from_argv(argv)))
     for line in sorted({line for spec in specs for line in config_warnings(spec.config)}):
@@ -205,6 +214,7 @@ def main() -> None:
         "steps": args.steps,
         "thresholds": thresholds,
         "extra_flags": extra,
+        "pimbrl_flags": shlex.split(args.pimbrl_args),
         "runs": rows,
         "summary": summary,
     }
