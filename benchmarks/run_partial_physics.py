@@ -92,6 +92,12 @@ def identified_within(history: list[dict], truth: dict[str, float], tolerance: f
     return first
 
 
+def mean_after(evaluations: list[dict], warmup_steps: int) -> float | None:
+    """Mean test return of the evaluations made after ``warmup_steps`` (``None`` if there are none)."""
+    returns = [float(r["return_mean"]) for r in evaluations if int(r["step"]) > warmup_steps]
+    return statistics.mean(returns) if returns else None
+
+
 def draw(specs: list[RunSpec], variants: list[str], path: Path, title: str) -> None:
     """Learning curves: per variant, the mean over seeds of the mean test return, banded by the seeds' range.
 
@@ -178,6 +184,9 @@ def main() -> None:
             **{f"steps_to_{t:g}": steps_to_threshold(evaluations, t) for t in thresholds},
             "final_return": returns[-1] if returns else None,
             "best_return": max(returns) if returns else None,
+            # the mean over the evaluations after the warm-up (the area under the learning curve per
+            # evaluation): a sample-efficiency figure that one lucky or unlucky evaluation moves less
+            "mean_return_after_warmup": mean_after(evaluations, spec.config.warmup_steps),
         }
         report = spec.path / "coefficients.json"
         if report.exists():
@@ -197,9 +206,12 @@ def main() -> None:
             entry[f"steps_to_{t:g}"] = steps
             entry[f"mean_steps_to_{t:g}"] = statistics.mean(reached) if len(reached) == len(steps) and steps else None
         entry["final_return"] = [r["final_return"] for r in mine]
+        entry["mean_return_after_warmup"] = [r["mean_return_after_warmup"] for r in mine]
         summary[variant] = entry
         line = "  ".join(f"to {t:g}: {entry[f'steps_to_{t:g}']}" for t in thresholds)
-        print(f"{variant:>15}  {line}  final {[round(x, 2) for x in entry['final_return'] if x is not None]}")
+        final = [round(x, 2) for x in entry["final_return"] if x is not None]
+        area = [round(x, 2) for x in entry["mean_return_after_warmup"] if x is not None]
+        print(f"{variant:>15}  {line}  final {final}  mean after warm-up {area}")
     for r in rows:
         if "identified" in r:
             within = r["within_5pct_from_step"]
