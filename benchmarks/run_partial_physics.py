@@ -187,6 +187,12 @@ def main() -> None:
             # the mean over the evaluations after the warm-up (the area under the learning curve per
             # evaluation): a sample-efficiency figure that one lucky or unlucky evaluation moves less
             "mean_return_after_warmup": mean_after(evaluations, spec.config.warmup_steps),
+            # the model's held-out next-state MSE as the loop measured it at each evaluation step
+            "model_val_mse": {
+                int(m["step"]): float(m["model/val_mse"])
+                for m in run.metrics([]).read()
+                if m.get("model/val_mse") and int(m["step"]) in {int(r["step"]) for r in evaluations}
+            },
         }
         report = spec.path / "coefficients.json"
         if report.exists():
@@ -212,6 +218,14 @@ def main() -> None:
         final = [round(x, 2) for x in entry["final_return"] if x is not None]
         area = [round(x, 2) for x in entry["mean_return_after_warmup"] if x is not None]
         print(f"{variant:>15}  {line}  final {final}  mean after warm-up {area}")
+    steps = sorted({step for r in rows for step in r["model_val_mse"]})
+    if steps:
+        print("model held-out MSE (mean over seeds) at steps " + ", ".join(f"{s:,d}" for s in steps))
+        for variant in variants:
+            mine = [r["model_val_mse"] for r in rows if r["variant"] == variant]
+            means = [statistics.mean(m[s] for m in mine if s in m) if any(s in m for m in mine) else None for s in steps]
+            summary[variant]["model_val_mse_mean"] = dict(zip(steps, means, strict=True))
+            print(f"{variant:>15}  " + " ".join("-" if v is None else f"{v:.1e}" for v in means))
     for r in rows:
         if "identified" in r:
             within = r["within_5pct_from_step"]
