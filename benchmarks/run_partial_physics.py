@@ -98,18 +98,22 @@ def mean_after(evaluations: list[dict], warmup_steps: int) -> float | None:
     return statistics.mean(returns) if returns else None
 
 
-def draw(specs: list[RunSpec], variants: list[str], path: Path, title: str) -> None:
-    """Learning curves: per variant, the mean over seeds of the mean test return, banded by the seeds' range.
+def draw(specs: list[RunSpec], variants: list[str], rows: list[dict], path: Path, title: str) -> None:
+    """Two panels per study: the test return and the model's held-out MSE against real steps.
 
-    (The band is the spread of the seeds' means, not of the test episodes, so that variants stay apart.)
+    Per variant, the mean over seeds as a line and the seeds' range as a band (the spread of the seeds'
+    means, not of the test episodes, so that variants stay apart); evaluations within the warm-up, where
+    every agent acts at random, are left out.
     """
+    import matplotlib.pyplot as plt
     import numpy as np
 
-    from pimbrl.plotting import plot_learning_curves
+    from pimbrl.plotting import save_figure
 
-    curves = []
+    fig, (ax_return, ax_model) = plt.subplots(1, 2, figsize=(12, 4.5))
     for variant in variants:
-        runs = [RunDirectory(s.path).evaluations.read() for s in specs if s.label == variant]
+        mine = [s for s in specs if s.label == variant]
+        runs = [[r for r in RunDirectory(s.path).evaluations.read() if int(r["step"]) > s.config.warmup_steps] for s in mine]
         runs = [r for r in runs if r]
         if not runs:
             continue
@@ -117,8 +121,24 @@ def draw(specs: list[RunSpec], variants: list[str], path: Path, title: str) -> N
         means = np.array([[float(row["return_mean"]) for row in r[:n]] for r in runs])
         steps = np.array([int(row["step"]) for row in runs[0][:n]])
         label = f"{variant} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
-        curves.append((label, steps, means.mean(axis=0), means.min(axis=0), means.max(axis=0)))
-    plot_learning_curves(curves, path, title=title)
+        (line,) = ax_return.plot(steps, means.mean(axis=0), label=label, lw=1.6)
+        ax_return.fill_between(steps, means.min(axis=0), means.max(axis=0), color=line.get_color(), alpha=0.18, lw=0)
+        mses = [r["model_val_mse"] for r in rows if r["variant"] == variant]
+        common = sorted(set.intersection(*(set(m) for m in mses))) if mses else []
+        if common:
+            values = np.array([[m[step] for step in common] for m in mses])
+            ax_model.plot(common, values.mean(axis=0), color=line.get_color(), lw=1.6, label=label)
+            ax_model.fill_between(common, values.min(axis=0), values.max(axis=0), color=line.get_color(), alpha=0.18, lw=0)
+    ax_return.set_ylabel("test return (mean over the evaluation states)")
+    ax_model.set_ylabel("model held-out next-state MSE")
+    ax_model.set_yscale("log")
+    for ax in (ax_return, ax_model):
+        ax.set_xlabel("real environment steps")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    save_figure(fig, path)
     print(f"figure: {path}")
 
 
@@ -231,7 +251,7 @@ def main() -> None:
             within = r["within_5pct_from_step"]
             print(f"  {r['variant']} seed {r['seed']}: identified {r['identified']}, within 5 % from step {within}")
     if args.figure:
-        draw(specs, variants, Path(args.figure), f"{args.env}: true {args.true}, prior {args.prior}")
+        draw(specs, variants, rows, Path(args.figure), f"{args.env}: true {args.true}, prior {args.prior}")
     payload = {
         "env": args.env,
         "true": args.true,
