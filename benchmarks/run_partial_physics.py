@@ -10,10 +10,15 @@ runs, over the seeds, with the same budget and the same evaluation states:
   correction for what no coefficient expresses, kept small by its penalty;
 * ``pimbrl-true``: the physics loss of the true system (the upper reference).
 
-Each run is a separate process (one thread), ``--jobs`` at a time; finished runs are skipped, interrupted
-ones resumed. Prints and records (``--name``: ``benchmarks/results/<name>.json``) the steps to each
-threshold, the final and best returns and, for ``pimbrl-learned``, the identified coefficients after each
-model phase and the first real step at which they are within 5 % of the truth.
+Flags after the options go to every variant; ``--pimbrl-args`` to the pimbrl variants only (e.g.
+``--pimbrl-args=--dyna.physics-start=0``). Each run is a separate process (one thread), ``--jobs`` at a
+time; finished runs are skipped, interrupted ones resumed, and a run directory that holds a run of another
+configuration is refused (``--rerun`` moves it aside). Prints and records (``--name``:
+``benchmarks/results/<name>.json``) per run the steps to each threshold, the final and best returns, the
+mean return over the evaluations after the warm-up, the model's held-out error at each evaluation and, for
+the variants that learn coefficients, the identified values and the first real step from which they stay
+within 5 % of the truth. ``--figure`` draws the returns and the model errors per variant (mean over seeds,
+band: the seeds' range).
 
 Usage, e.g.::
 
@@ -33,7 +38,7 @@ import _common
 
 from pimbrl.cli import config_warnings
 from pimbrl.config import parse_prior
-from pimbrl.experiments.compare import RunSpec, run_all
+from pimbrl.experiments.compare import RunSpec, check_reuse, run_all
 from pimbrl.models.coefficients import CORRECTION_OF
 from pimbrl.training import RunDirectory
 from pimbrl.training.cli_args import config_from_argv
@@ -53,15 +58,7 @@ def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
     if variant == "pimbrl-learned":
         return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior, "--dyna.learn-coefficients", learn]
     if variant == "pimbrl-learned-correction":
-        return [
-            "--method",
-            "pimbrl",
-            *env_kwargs,
-            "--dyna.physics-prior",
-            prior,
-            "--dyna.learn-coefficients",
-            f"{learn},correction",
-        ]
+        return variant_args("pimbrl-learned", true, prior, f"{learn},correction")
     if variant == "pimbrl-true":
         return ["--method", "pimbrl", *env_kwargs]
     raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS + OPTIONAL_VARIANTS)}")
@@ -94,48 +91,74 @@ def identified_within(history: list[dict], truth: dict[str, float], tolerance: f
 
 def mean_after(evaluations: list[dict], warmup_steps: int) -> float | None:
     """Mean test return of the evaluations made after ``warmup_steps`` (``None`` if there are none)."""
-    returns = [float(r["return_mean"]) for r in evaluations if int(r["step"]) > warmup_steps]
+    returns = [float(r["return_mean"]) for r in evaluations if int(float(r["step"])) > warmup_steps]
     return statistics.mean(returns) if returns else None
 
 
-def draw(specs: list[RunSpec], variants: list[str], rows: list[dict], path: Path, title: str) -> None:
-    """Two panels per study: the test return and the model's held-out MSE against real steps.
+def model_errors(run: RunDirectory, eval_steps: list[int]) -> dict[int, float]:
+    """The model's held-out MSE at each evaluation step: the last logged value at or before it.
 
-    Per variant, the mean over seeds as a line and the seeds' range as a band (the spread of the seeds'
-    means, not of the test episodes, so that variants stay apart); evaluations within the warm-up, where
-    every agent acts at random, are left out.
+    Metrics rows come every ``log_every`` steps, evaluations every ``eval_every``; rows without a value
+    (before the model's first check), and a torn last row of a run still writing, are skipped.
     """
-    import matplotlib.pyplot as plt
+    logged = []
+    for m in run.metrics([]).read():
+        try:
+            logged.append((int(float(m["step"])), float(m["model/val_mse"])))
+        except (KeyError, TypeError, ValueError):
+            continue
+    out = {}
+    for step in eval_steps:
+        before = [value for at, value in logged if at <= step]
+        if before:
+            out[step] = before[-1]
+    return out
+
+
+def seed_range(label: str, series: list[dict[int, float]]) -> tuple[str, ...] | None:
+    """``(label, steps, mean, low, high)`` over the steps every seed's ``{step: value}`` has (None if none)."""
+    series = [s for s in series if s]
+    steps = sorted(set.intersection(*(set(s) for s in series))) if series else []
+    if not steps:
+        return None
     import numpy as np
 
-    from pimbrl.plotting import save_figure
+    values = np.array([[s[step] for step in steps] for s in series])
+    n = len(series)
+    return (f"{label} ({n} seed{'s' if n > 1 else ''})", np.array(steps), values.mean(0), values.min(0), values.max(0))
 
-    fig, (ax_return, ax_model) = plt.subplots(1, 2, figsize=(12, 4.5))
+
+def draw(rows: list[dict], variants: list[str], thresholds: list[float], path: Path, title: str) -> None:
+    """Two panels: the test return and the model's held-out MSE against real steps, after the warm-up.
+
+    Per variant, the mean over seeds as a line and the seeds' range as a band (the spread of the seeds'
+    means, not of the test episodes, so that variants stay apart), over the steps every seed reached.
+    """
+    import matplotlib.pyplot as plt
+
+    from pimbrl.plotting import draw_curves, save_figure
+
+    fig, (ax_return, ax_model) = plt.subplots(1, 2, figsize=(12, 4.5), sharex=True)
+    returns, errors = [], []
     for variant in variants:
-        mine = [s for s in specs if s.label == variant]
-        runs = [[r for r in RunDirectory(s.path).evaluations.read() if int(r["step"]) > s.config.warmup_steps] for s in mine]
-        runs = [r for r in runs if r]
-        if not runs:
-            continue
-        n = min(len(r) for r in runs)
-        means = np.array([[float(row["return_mean"]) for row in r[:n]] for r in runs])
-        steps = np.array([int(row["step"]) for row in runs[0][:n]])
-        label = f"{variant} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
-        (line,) = ax_return.plot(steps, means.mean(axis=0), label=label, lw=1.6)
-        ax_return.fill_between(steps, means.min(axis=0), means.max(axis=0), color=line.get_color(), alpha=0.18, lw=0)
-        mses = [r["model_val_mse"] for r in rows if r["variant"] == variant]
-        common = sorted(set.intersection(*(set(m) for m in mses))) if mses else []
-        if common:
-            values = np.array([[m[step] for step in common] for m in mses])
-            ax_model.plot(common, values.mean(axis=0), color=line.get_color(), lw=1.6, label=label)
-            ax_model.fill_between(common, values.min(axis=0), values.max(axis=0), color=line.get_color(), alpha=0.18, lw=0)
+        mine = [r for r in rows if r["variant"] == variant]
+        returns.append(seed_range(variant, [r["returns_after_warmup"] for r in mine]))
+        errors.append(seed_range(variant, [r["model_val_mse_after_warmup"] for r in mine]))
+    colors = draw_curves(ax_return, [c for c in returns if c is not None], thresholds)
+    color_of = dict(zip([c[0] for c in returns if c is not None], colors, strict=True))
+    for curve in errors:
+        if curve is not None:
+            label, steps, mean, low, high = curve
+            (line,) = ax_model.plot(steps, mean, label=label, lw=1.6, color=color_of.get(label))
+            ax_model.fill_between(steps, low, high, color=line.get_color(), alpha=0.18, lw=0)
+    ax_model.grid(alpha=0.3)
+    if ax_model.get_legend_handles_labels()[0]:
+        ax_model.legend(fontsize=8)
     ax_return.set_ylabel("test return (mean over the evaluation states)")
     ax_model.set_ylabel("model held-out next-state MSE")
     ax_model.set_yscale("log")
     for ax in (ax_return, ax_model):
         ax.set_xlabel("real environment steps")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
     save_figure(fig, path)
@@ -157,11 +180,12 @@ def main() -> None:
     parser.add_argument(
         "--pimbrl-args",
         default="",
-        help="`pimbrl train` flags for the pimbrl variants only, e.g. '--dyna.physics-start 0' (flags after the "
-        "options go to every variant)",
+        help="`pimbrl train` flags for the pimbrl variants only, e.g. --pimbrl-args='--dyna.physics-start 0' "
+        "(use = when the value starts with --; flags after the options go to every variant)",
     )
     parser.add_argument("--name", default=None, help="record as benchmarks/results/<name>.json")
     parser.add_argument("--no-run", action="store_true", help="summarise the runs as they are")
+    parser.add_argument("--rerun", action="store_true", help="move aside runs made with another configuration")
     parser.add_argument(
         "--figure", default=None, help="draw the learning curves here: per variant, the seeds' mean and their range"
     )
@@ -176,6 +200,11 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",")]
     thresholds = [float(t) for t in args.thresholds.split(",")]
     variants = args.variants.split(",")
+    unknown = [v for v in variants if v not in VARIANTS + OPTIONAL_VARIANTS]
+    if unknown:
+        parser.error(f"unknown variant(s) {', '.join(unknown)}; choose from {', '.join(VARIANTS + OPTIONAL_VARIANTS)}")
+    if args.pimbrl_args and not any(v.startswith("pimbrl") for v in variants):
+        print("warning: --pimbrl-args is ignored: no pimbrl variant is run")
     specs = []
     for seed in seeds:  # seed by seed, so that runs cut short leave every variant on the first seeds
         for variant in variants:
@@ -184,11 +213,13 @@ def main() -> None:
                 flags += shlex.split(args.pimbrl_args)
             argv = [args.env, "--seed", str(seed), "--threads", "1", "--steps", str(args.steps), *flags, *extra]
             specs.append(RunSpec(variant, seed, out / variant / f"seed{seed}", config_from_argv(argv)))
-    for line in sorted({line for spec in specs for line in config_warnings(spec.config)}):
+    # the runs' own threshold is not used here (the summary counts --thresholds), so it is not warned about
+    warnings = {line for spec in specs for line in config_warnings(spec.config) if not line.startswith("threshold ")}
+    for line in sorted(warnings):
         print(f"warning: {line}")
+    check_reuse(specs, rerun=args.rerun and not args.no_run)
     if not args.no_run:
         run_all(specs, jobs=args.jobs)
-    truth = parse_prior(args.true)
     rows = []
     for spec in specs:
         run = RunDirectory(spec.path)
@@ -207,13 +238,12 @@ def main() -> None:
             # the mean over the evaluations after the warm-up (the area under the learning curve per
             # evaluation): a sample-efficiency figure that one lucky or unlucky evaluation moves less
             "mean_return_after_warmup": mean_after(evaluations, spec.config.warmup_steps),
-            # the model's held-out next-state MSE as the loop measured it at each evaluation step
-            "model_val_mse": {
-                int(m["step"]): float(m["model/val_mse"])
-                for m in run.metrics([]).read()
-                if m.get("model/val_mse") and int(m["step"]) in {int(r["step"]) for r in evaluations}
-            },
+            # the model's held-out next-state MSE as the loop measured it, at each evaluation
+            "model_val_mse": model_errors(run, [int(float(r["step"])) for r in evaluations]),
         }
+        after = [r for r in evaluations if int(float(r["step"])) > spec.config.warmup_steps]
+        row["returns_after_warmup"] = {int(float(r["step"])): float(r["return_mean"]) for r in after}
+        row["model_val_mse_after_warmup"] = {k: v for k, v in row["model_val_mse"].items() if k > spec.config.warmup_steps}
         report = spec.path / "coefficients.json"
         if report.exists():
             coefficients = json.loads(report.read_text())
@@ -223,6 +253,7 @@ def main() -> None:
             row["within_5pct_from_step"] = identified_within(coefficients["history"], truth)
         rows.append(row)
     summary = {}
+    width = max(len(v) for v in variants)
     for variant in variants:
         mine = [r for r in rows if r["variant"] == variant]
         entry: dict = {"seeds": len(mine)}
@@ -237,21 +268,21 @@ def main() -> None:
         line = "  ".join(f"to {t:g}: {entry[f'steps_to_{t:g}']}" for t in thresholds)
         final = [round(x, 2) for x in entry["final_return"] if x is not None]
         area = [round(x, 2) for x in entry["mean_return_after_warmup"] if x is not None]
-        print(f"{variant:>15}  {line}  final {final}  mean after warm-up {area}")
-    steps = sorted({step for r in rows for step in r["model_val_mse"]})
-    if steps:
-        print("model held-out MSE (mean over seeds) at steps " + ", ".join(f"{s:,d}" for s in steps))
-        for variant in variants:
-            mine = [r["model_val_mse"] for r in rows if r["variant"] == variant]
-            means = [statistics.mean(m[s] for m in mine if s in m) if any(s in m for m in mine) else None for s in steps]
-            summary[variant]["model_val_mse_mean"] = dict(zip(steps, means, strict=True))
-            print(f"{variant:>15}  " + " ".join("-" if v is None else f"{v:.1e}" for v in means))
+        print(f"{variant:>{width}}  {line}  final {final}  mean after warm-up {area}")
+    print("model held-out MSE, mean over the seeds (at the steps every seed reached):")
+    for variant in variants:
+        curve = seed_range(variant, [r["model_val_mse"] for r in rows if r["variant"] == variant])
+        if curve is None:
+            continue
+        _, at, mean, _, _ = curve
+        summary[variant]["model_val_mse_mean"] = {int(k): float(v) for k, v in zip(at, mean, strict=True)}
+        print(f"{variant:>{width}}  " + " ".join(f"{k:,d}: {v:.1e}" for k, v in zip(at, mean, strict=True)))
     for r in rows:
         if "identified" in r:
             within = r["within_5pct_from_step"]
             print(f"  {r['variant']} seed {r['seed']}: identified {r['identified']}, within 5 % from step {within}")
     if args.figure:
-        draw(specs, variants, rows, Path(args.figure), f"{args.env}: true {args.true}, prior {args.prior}")
+        draw(rows, variants, thresholds, Path(args.figure), f"{args.env}: true {args.true}, prior {args.prior}")
     payload = {
         "env": args.env,
         "true": args.true,

@@ -193,21 +193,64 @@ def test_a_budget_that_ends_before_warm_up_and_model_is_warned_about(capsys) -> 
     assert "--dyna.start-model-after" in err
 
 
-def test_the_preset_finetune_return_on_a_changed_system_is_warned_about(capsys) -> None:
-    # the KS preset switches to model-free fine-tuning at -55, a value on the default system's return scale
-    base = ["train", "ks", "--steps", "20000", "--env-kwargs", '{"convection": 1.3}', "--print-config"]
-    assert main([*base, "--method", "pimbrl"]) == 0
+def test_preset_returns_kept_on_a_changed_system_are_warned_about(capsys) -> None:
+    # the KS preset's threshold and its switch to model-free fine-tuning are -55, on the registered system's
+    # return scale; a run on another system that keeps them is warned, once per setting, with the flag to set
+    base = ["train", "ks", "--steps", "20000", "--print-config"]
+    changed = ["--env-kwargs", '{"convection": 1.3}']
+    assert main([*base, *changed, "--method", "pimbrl"]) == 0
     err = capsys.readouterr().err
-    assert "warning: dyna.finetune_return = -55 (the preset's)" in err
-    assert "--env-kwargs (convection) change the system" in err and "--dyna.finetune-return" in err
+    assert "warning: threshold = -55 (the preset's) counts a run as solved" in err
+    assert "give --threshold for this system" in err
+    assert "warning: dyna.finetune_return = -55 (the preset's) switches to model-free fine-tuning" in err
+    assert "--env-kwargs change convection" in err and "--dyna.finetune-return none never to switch" in err
+    assert main([*base, *changed, "--method", "mfrl"]) == 0  # no model, no switch: the threshold alone
+    err = capsys.readouterr().err
+    assert "threshold = -55" in err and "finetune_return" not in err
     for quiet in (
-        [*base, "--method", "pimbrl", "--dyna.finetune-return", "none"],  # switched off
-        [*base, "--method", "mbrl", "--dyna.finetune-return", "-30"],  # set for this system
-        [*base, "--method", "mfrl"],  # no model to leave
-        ["train", "ks", "--method", "pimbrl", "--steps", "20000", "--print-config"],  # the registered system
+        [*base, *changed, "--method", "pimbrl", "--threshold", "-30", "--dyna.finetune-return", "none"],
+        [*base, *changed, "--method", "mbrl", "--threshold", "-30", "--dyna.finetune-return", "-30"],
+        [*base, "--env-kwargs", '{"convection": 1.0}', "--method", "pimbrl"],  # the registered value
+        [*base, "--method", "pimbrl"],  # the registered system
     ):
         assert main(quiet) == 0
         assert "warning" not in capsys.readouterr().err, quiet
+
+
+class _Stopped(BaseException):
+    """Raised by a stand-in for the comparison, so that a test stops once the warnings are printed."""
+
+
+def test_compare_warns_each_method_of_preset_returns_on_a_changed_system(tmp_path, capsys, monkeypatch) -> None:
+    import pimbrl.experiments.compare as compare_module
+
+    def stop(*args, **kwargs):
+        raise _Stopped
+
+    monkeypatch.setattr(compare_module, "compare", stop)
+    argv = ["compare", "ks", "--methods", "mfrl,pimbrl", "--seeds", "1", "--run-dir", str(tmp_path / "c")]
+    with pytest.raises(_Stopped):
+        main([*argv, "--", "--env-kwargs", '{"convection": 1.3}'])
+    err = capsys.readouterr().err
+    assert "pimbrl compare: warning: mfrl: threshold = -55" in err
+    assert "pimbrl compare: warning: pimbrl: dyna.finetune_return = -55" in err
+    assert "mfrl: dyna.finetune_return" not in err
+    with pytest.raises(_Stopped):
+        main([*argv, "--threshold", "-30", "--", "--env-kwargs", '{"convection": 1.3}', "--dyna.finetune-return", "none"])
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_physics_start_before_the_first_update_phase_is_warned_about(capsys) -> None:
+    # model phases run from update_after on: a physics_start before it trains nothing until then
+    base = ["train", "ks", "--method", "pimbrl", "--steps", "20000", "--print-config"]
+    assert main([*base, "--dyna.physics-start", "0"]) == 0  # the preset: update_after 4000, labels at 6000
+    err = capsys.readouterr().err
+    assert "dyna.physics_start = 0 is before update_after = 4000" in err
+    assert "the physics-only training runs from 4000 to 6000" in err and "--update-after" in err
+    assert main([*base, "--dyna.physics-start", "0", "--dyna.start-model-after", "4000"]) == 0
+    assert "no phase trains on the physics alone" in capsys.readouterr().err
+    assert main([*base, "--dyna.physics-start", "4000"]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_a_budget_past_warm_up_gets_no_warning(capsys) -> None:

@@ -116,7 +116,9 @@ def budget_warnings(cfg: Any) -> list[str]:
     """What a run of ``cfg`` (a :class:`~pimbrl.training.TrainConfig`) will never do within its budget.
 
     One line each: no agent update (the budget ends by ``update_after``), random actions only (by
-    ``warmup_steps``), no model (model-based runs, by ``dyna.start_model_after``), with the flag to change.
+    ``warmup_steps``), no model (model-based runs, by ``dyna.start_model_after``), and no physics-only
+    training before ``update_after`` (pimbrl with ``dyna.physics_start`` below it: model phases run only
+    from ``update_after`` on), with the flag to change.
     """
     n = cfg.total_steps
     out = []
@@ -134,6 +136,17 @@ def budget_warnings(cfg: Any) -> list[str]:
         out.append(
             f"--steps {n} ends before the model is first trained (dyna.start_model_after = {cfg.dyna.start_model_after}): "
             f"the run never uses a model; give --steps above {cfg.dyna.start_model_after} or a lower --dyna.start-model-after"
+        )
+    start = cfg.dyna.physics_start if cfg.method == "pimbrl" else None
+    if start is not None and start < cfg.update_after:
+        first = (
+            "the labels join then too, so no phase trains on the physics alone"
+            if (cfg.dyna.start_model_after <= cfg.update_after)
+            else f"the physics-only training runs from {cfg.update_after} to {cfg.dyna.start_model_after}"
+        )
+        out.append(
+            f"dyna.physics_start = {start} is before update_after = {cfg.update_after}, and model phases run only "
+            f"from update_after on: {first}; give a lower --update-after to train the model earlier"
         )
     return out
 

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 from .fileio import new_file_mode
 
-__all__ = ["STATE_LABELS", "plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band"]
+__all__ = ["STATE_LABELS", "draw_curves", "plot_episode", "plot_learning_curves", "plot_spacetime", "save_figure", "seed_band"]
 
 STATE_LABELS = {
     "pimbrl/CartPole-v0": ["x", "x_dot", "theta", "theta_dot"],
@@ -136,6 +136,28 @@ def seed_band(
     )
 
 
+def draw_curves(
+    ax: Axes,
+    curves: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    thresholds: Sequence[float] = (),
+) -> list[str]:
+    """Draw each ``(label, steps, mean, low, high)`` on ``ax`` as a line with a band; the colours used.
+
+    Each threshold is a dashed horizontal line; the grid and a legend (if anything is labelled) are added.
+    """
+    colors = []
+    for label, steps, mean, low, high in curves:
+        (line,) = ax.plot(steps, mean, label=label, lw=1.6)
+        ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.18, lw=0)
+        colors.append(line.get_color())
+    for threshold in thresholds:
+        ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"threshold {threshold:g}")
+    ax.grid(alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", fontsize=8)
+    return colors
+
+
 def plot_learning_curves(
     curves: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     path: str | os.PathLike,
@@ -148,16 +170,10 @@ def plot_learning_curves(
     The mean test return is drawn as a line and the min-max range of the test episodes as a band.
     """
     fig, ax = plt.subplots(figsize=(8, 5))
-    for label, steps, mean, low, high in curves:
-        (line,) = ax.plot(steps, mean, label=label, lw=1.6)
-        ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.18, lw=0)
-    if threshold is not None:
-        ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"threshold {threshold:g}")
+    draw_curves(ax, curves, () if threshold is None else (threshold,))
     ax.set_xlabel(xlabel)
     ax.set_ylabel("test return")
     if title:
         ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     return save_figure(fig, path)

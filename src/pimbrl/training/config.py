@@ -50,6 +50,7 @@ __all__ = [
     "PRESETS",
     "DynaConfig",
     "TrainConfig",
+    "changed_env_kwargs",
     "check_env_kwargs",
     "check_tensorboard",
     "config_from_dict",
@@ -428,24 +429,61 @@ def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
             raise ConfigError(f"env_kwargs: {env} takes no keyword argument {key!r}{did_you_mean(key, names)}; it takes: {takes}")
 
 
+def changed_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> list[str]:
+    """The names in ``kwargs`` whose value differs from the environment's registered default.
+
+    Defaults are read from the environment's class (of its task, for pimbrl environments, whose physical
+    coefficients default to its physics' :meth:`~pimbrl.physics.Physics.coefficient_values`); a name whose
+    default cannot be read counts as changed.
+    """
+    defaults: dict[str, Any] = {}
+    entry = _entry_point(env) if kwargs else None
+    if entry is not None:
+        task_class = getattr(entry, "task_class", None)
+        target: Any = task_class or entry
+        try:
+            params = inspect.signature(target).parameters.values()
+            defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
+            if task_class is not None:
+                defaults.update(task_class().physics.coefficient_values())
+        except (AttributeError, TypeError, ValueError):
+            defaults = {}
+    return [name for name, value in kwargs.items() if name not in defaults or defaults[name] != value]
+
+
 def return_scale_warnings(cfg: TrainConfig) -> list[str]:
     """Preset settings measured in test returns, kept for an environment the run changes.
 
-    A preset's ``dyna.finetune_return`` (KS: -55) was set on the return scale of the environment as
-    registered; ``env_kwargs`` (other coefficients such as ``convection``, an actuator width, another
-    reward or initial-state pool) change that scale, so the switch to model-free fine-tuning can fire at
-    once or never. One line, with the flags to set, when the run keeps the preset's value; nothing otherwise.
+    A preset's ``threshold`` (steps-to-threshold; KS: -55) and, for the model-based methods, its
+    ``dyna.finetune_return`` (the switch to model-free fine-tuning; KS: -55) were set on the return scale
+    of the environment as registered. ``env_kwargs`` that change it (other coefficients such as
+    ``convection``, an actuator width, another reward or initial-state pool) may change that scale, so the
+    switch can fire at once or never, and steps to the threshold measure something else. One line per such
+    setting, with the flag to set, when the run keeps the preset's value (a value given equal to the
+    preset's cannot be told apart, and is warned about too); nothing when the keyword arguments only
+    repeat the registered defaults.
     """
-    if cfg.method not in ("mbrl", "pimbrl") or cfg.dyna.finetune_return is None or not cfg.env_kwargs:
+    preset = PRESETS.get(cfg.env, {})
+    kept = []
+    if preset.get("threshold") is not None and cfg.threshold == preset["threshold"]:
+        kept.append(("threshold", "counts a run as solved (steps to threshold)", "--threshold"))
+    finetune = preset.get("model_based", {}).get("dyna", {}).get("finetune_return")
+    if cfg.method in MODEL_BASED and finetune is not None and cfg.dyna.finetune_return == finetune:
+        kept.append(("dyna.finetune_return", "switches to model-free fine-tuning", "--dyna.finetune-return"))
+    changed = changed_env_kwargs(cfg.env, cfg.env_kwargs) if kept else []
+    if not changed:
         return []
-    preset = PRESETS.get(cfg.env, {}).get("model_based", {}).get("dyna", {}).get("finetune_return")
-    if preset is None or cfg.dyna.finetune_return != preset:
-        return []
-    return [
-        f"dyna.finetune_return = {preset:g} (the preset's) switches to model-free fine-tuning at that test return, "
-        f"a value set for {cfg.env} as registered; --env-kwargs ({', '.join(cfg.env_kwargs)}) change the system and "
-        f"with it the scale of the returns: give --dyna.finetune-return for this system, or none to keep the model"
-    ]
+    lines = []
+    for name, role, flag in kept:
+        value = cfg.threshold if name == "threshold" else cfg.dyna.finetune_return
+        fix = f"give {flag} for this system"
+        if flag == "--dyna.finetune-return":
+            fix += ", or --dyna.finetune-return none never to switch (the model stays in use)"
+        lines.append(
+            f"{name} = {value:g} (the preset's) {role} at that test return, a value set for {cfg.env} as "
+            f"registered; --env-kwargs change {', '.join(changed)}, which may change the scale of the returns: {fix}"
+        )
+    return lines
 
 
 def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
