@@ -6,7 +6,7 @@ import os
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -140,7 +140,7 @@ def draw_curves(
     ax: Axes,
     curves: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     thresholds: Sequence[float] = (),
-) -> list[str]:
+) -> list[Any]:
     """Draw each ``(label, steps, mean, low, high)`` on ``ax`` as a line with a band; the colours used.
 
     Each threshold is a dashed horizontal line; the grid and a legend (if anything is labelled) are added.
