@@ -397,6 +397,26 @@ def check_tensorboard() -> None:
         ) from None
 
 
+def _env_keywords(env: str) -> tuple[list[inspect.Parameter], dict[str, float]] | None:
+    """What the environment ``env`` takes as keyword arguments, ``None`` where that cannot be read.
+
+    The parameters of its class (of its task, for pimbrl environments) and, for a task taking
+    ``**coefficients``, its physics' coefficients with their values (the defaults).
+    """
+    entry = _entry_point(env)
+    if entry is None:
+        return None
+    try:
+        task_class = getattr(entry, "task_class", None)
+        params = list(inspect.signature(task_class or entry).parameters.values())
+        coefficients: dict[str, float] = {}
+        if task_class is not None and any(p.kind is p.VAR_KEYWORD for p in params):
+            coefficients = task_class().physics.coefficient_values()  # a task's physics is built without simulating
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return params, coefficients
+
+
 def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
     """Raise :class:`ConfigError` for a keyword argument that the environment ``env`` does not take.
 
@@ -405,24 +425,14 @@ def check_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> None:
     :attr:`~pimbrl.physics.Physics.coefficients`. Any other environment that takes ``**kwargs``, or one that
     cannot be inspected, is not checked.
     """
-    if not kwargs:
+    found = _env_keywords(env) if kwargs else None
+    if found is None:
         return
-    entry = _entry_point(env)
-    if entry is None:
-        return
-    try:
-        task_class = getattr(entry, "task_class", None)
-        target: Any = task_class or entry
-        params = inspect.signature(target).parameters.values()
-        extra: tuple[str, ...] = ()
-        if task_class is not None and any(p.kind is p.VAR_KEYWORD for p in params):
-            extra = tuple(task_class().physics.coefficients)  # a task's physics is built without simulating
-    except (AttributeError, TypeError, ValueError):
-        return
-    if not extra and any(p.kind is p.VAR_KEYWORD for p in params):
+    params, coefficients = found
+    if not coefficients and any(p.kind is p.VAR_KEYWORD for p in params):
         return
     names = [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name != "self"]
-    names += [name for name in extra if name not in names]
+    names += [name for name in coefficients if name not in names]
     for key in kwargs:
         if key not in names:
             takes = ", ".join(names) if names else "none"
@@ -436,18 +446,12 @@ def changed_env_kwargs(env: str, kwargs: Mapping[str, Any]) -> list[str]:
     coefficients default to its physics' :meth:`~pimbrl.physics.Physics.coefficient_values`); a name whose
     default cannot be read counts as changed.
     """
+    found = _env_keywords(env) if kwargs else None
     defaults: dict[str, Any] = {}
-    entry = _entry_point(env) if kwargs else None
-    if entry is not None:
-        task_class = getattr(entry, "task_class", None)
-        target: Any = task_class or entry
-        try:
-            params = inspect.signature(target).parameters.values()
-            defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
-            if task_class is not None:
-                defaults.update(task_class().physics.coefficient_values())
-        except (AttributeError, TypeError, ValueError):
-            defaults = {}
+    if found is not None:
+        params, coefficients = found
+        defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
+        defaults.update(coefficients)
     return [name for name, value in kwargs.items() if name not in defaults or defaults[name] != value]
 
 
@@ -464,26 +468,24 @@ def return_scale_warnings(cfg: TrainConfig) -> list[str]:
     repeat the registered defaults.
     """
     preset = PRESETS.get(cfg.env, {})
-    kept = []
+    kept = []  # (name, value, what it does, how to fix it)
     if preset.get("threshold") is not None and cfg.threshold == preset["threshold"]:
-        kept.append(("threshold", "counts a run as solved (steps to threshold)", "--threshold"))
+        role = "counts a run as solved (steps to threshold)"
+        kept.append(("threshold", cfg.threshold, role, "give --threshold for this system"))
     finetune = preset.get("model_based", {}).get("dyna", {}).get("finetune_return")
     if cfg.method in MODEL_BASED and finetune is not None and cfg.dyna.finetune_return == finetune:
-        kept.append(("dyna.finetune_return", "switches to model-free fine-tuning", "--dyna.finetune-return"))
+        fix = (
+            "give --dyna.finetune-return for this system, or --dyna.finetune-return none never to switch (the model stays in use)"
+        )
+        kept.append(("dyna.finetune_return", finetune, "switches to model-free fine-tuning", fix))
     changed = changed_env_kwargs(cfg.env, cfg.env_kwargs) if kept else []
     if not changed:
         return []
-    lines = []
-    for name, role, flag in kept:
-        value = cfg.threshold if name == "threshold" else cfg.dyna.finetune_return
-        fix = f"give {flag} for this system"
-        if flag == "--dyna.finetune-return":
-            fix += ", or --dyna.finetune-return none never to switch (the model stays in use)"
-        lines.append(
-            f"{name} = {value:g} (the preset's) {role} at that test return, a value set for {cfg.env} as "
-            f"registered; --env-kwargs change {', '.join(changed)}, which may change the scale of the returns: {fix}"
-        )
-    return lines
+    return [
+        f"{name} = {value:g} (the preset's) {role} at that test return, a value set for {cfg.env} as registered; "
+        f"--env-kwargs change {', '.join(changed)}, which may change the scale of the returns: {fix}"
+        for name, value, role, fix in kept
+    ]
 
 
 def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
