@@ -89,12 +89,6 @@ def identified_within(history: list[dict], truth: dict[str, float], tolerance: f
     return first
 
 
-def mean_after(evaluations: list[dict], warmup_steps: int) -> float | None:
-    """Mean test return of the evaluations made after ``warmup_steps`` (``None`` if there are none)."""
-    returns = [float(r["return_mean"]) for r in evaluations if int(float(r["step"])) > warmup_steps]
-    return statistics.mean(returns) if returns else None
-
-
 def model_errors(run: RunDirectory, eval_steps: list[int]) -> dict[int, float]:
     """The model's held-out MSE at each evaluation step: the last logged value at or before it.
 
@@ -139,21 +133,14 @@ def draw(rows: list[dict], variants: list[str], thresholds: list[float], path: P
     from pimbrl.plotting import draw_curves, save_figure
 
     fig, (ax_return, ax_model) = plt.subplots(1, 2, figsize=(12, 4.5), sharex=True)
-    returns, errors = [], []
-    for variant in variants:
-        mine = [r for r in rows if r["variant"] == variant]
-        returns.append(seed_range(variant, [r["returns_after_warmup"] for r in mine]))
-        errors.append(seed_range(variant, [r["model_val_mse_after_warmup"] for r in mine]))
-    colors = draw_curves(ax_return, [c for c in returns if c is not None], thresholds)
-    color_of = dict(zip([c[0] for c in returns if c is not None], colors, strict=True))
-    for curve in errors:
-        if curve is not None:
-            label, steps, mean, low, high = curve
-            (line,) = ax_model.plot(steps, mean, label=label, lw=1.6, color=color_of.get(label))
-            ax_model.fill_between(steps, low, high, color=line.get_color(), alpha=0.18, lw=0)
-    ax_model.grid(alpha=0.3)
-    if ax_model.get_legend_handles_labels()[0]:
-        ax_model.legend(fontsize=8)
+
+    def by_variant(key: str) -> list:
+        curves = (seed_range(v, [r[key] for r in rows if r["variant"] == v]) for v in variants)
+        return [c for c in curves if c is not None]
+
+    returns, errors = by_variant("returns_after_warmup"), by_variant("model_val_mse_after_warmup")
+    color_of = dict(zip([c[0] for c in returns], draw_curves(ax_return, returns, thresholds), strict=True))
+    draw_curves(ax_model, errors, colors=[color_of.get(c[0]) for c in errors], legend_loc="best")
     ax_return.set_ylabel("test return (mean over the evaluation states)")
     ax_model.set_ylabel("model held-out next-state MSE")
     ax_model.set_yscale("log")
@@ -235,14 +222,14 @@ def main() -> None:
             **{f"steps_to_{t:g}": steps_to_threshold(evaluations, t) for t in thresholds},
             "final_return": returns[-1] if returns else None,
             "best_return": max(returns) if returns else None,
-            # the mean over the evaluations after the warm-up (the area under the learning curve per
-            # evaluation): a sample-efficiency figure that one lucky or unlucky evaluation moves less
-            "mean_return_after_warmup": mean_after(evaluations, spec.config.warmup_steps),
             # the model's held-out next-state MSE as the loop measured it, at each evaluation
             "model_val_mse": model_errors(run, [int(float(r["step"])) for r in evaluations]),
         }
         after = [r for r in evaluations if int(float(r["step"])) > spec.config.warmup_steps]
         row["returns_after_warmup"] = {int(float(r["step"])): float(r["return_mean"]) for r in after}
+        # their mean (the area under the learning curve per evaluation): a sample-efficiency figure that one
+        # lucky or unlucky evaluation moves less than steps to a threshold
+        row["mean_return_after_warmup"] = statistics.mean(row["returns_after_warmup"].values()) if after else None
         row["model_val_mse_after_warmup"] = {k: v for k, v in row["model_val_mse"].items() if k > spec.config.warmup_steps}
         report = spec.path / "coefficients.json"
         if report.exists():

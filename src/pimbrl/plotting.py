@@ -140,22 +140,25 @@ def draw_curves(
     ax: Axes,
     curves: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     thresholds: Sequence[float] = (),
+    colors: Sequence[Any] | None = None,
+    legend_loc: str = "lower right",
 ) -> list[Any]:
     """Draw each ``(label, steps, mean, low, high)`` on ``ax`` as a line with a band; the colours used.
 
+    ``colors`` (one per curve) fixes them, e.g. to match another panel; by default the axes' cycle picks.
     Each threshold is a dashed horizontal line; the grid and a legend (if anything is labelled) are added.
     """
-    colors = []
-    for label, steps, mean, low, high in curves:
-        (line,) = ax.plot(steps, mean, label=label, lw=1.6)
+    used = []
+    for i, (label, steps, mean, low, high) in enumerate(curves):
+        (line,) = ax.plot(steps, mean, label=label, lw=1.6, color=None if colors is None else colors[i])
         ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.18, lw=0)
-        colors.append(line.get_color())
+        used.append(line.get_color())
     for threshold in thresholds:
         ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"threshold {threshold:g}")
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="lower right", fontsize=8)
-    return colors
+        ax.legend(loc=legend_loc, fontsize=8)  # type: ignore[call-overload]  # loc: any matplotlib location string
+    return used
 
 
 def plot_learning_curves(
