@@ -10,6 +10,14 @@ runs, over the seeds, with the same budget and the same evaluation states:
   correction for what no coefficient expresses, kept small by its penalty;
 * ``pimbrl-true``: the physics loss of the true system (the upper reference).
 
+Optional variants with the physics inside the model (:mod:`pimbrl.models.hybrid`; ask with ``--variants``):
+
+* ``physics-wrong``: the prior's coarse scheme as the model, fixed (the physics-only model; no network);
+* ``physics-learned``: that scheme with the ``--learn`` coefficients fitted to the labels (pimbrl);
+* ``hybrid-learned``: the scheme with the learned coefficients plus a correction network that starts at zero
+  (pimbrl: the physics loss keeps the correction small);
+* ``physics-true``: the true system's coarse scheme as the model (the upper reference of these).
+
 Flags after the options go to every variant; ``--pimbrl-args`` to the pimbrl variants only (e.g.
 ``--pimbrl-args=--dyna.physics-start=0``). Each run is a separate process (one thread), ``--jobs`` at a
 time; finished runs are skipped, interrupted ones resumed, and a run directory that holds a run of another
@@ -45,7 +53,13 @@ from pimbrl.training.cli_args import config_from_argv
 from pimbrl.training.rundir import steps_to_threshold
 
 VARIANTS = ("mbrl", "pimbrl-wrong", "pimbrl-learned", "pimbrl-true")
-OPTIONAL_VARIANTS = ("pimbrl-learned-correction",)
+OPTIONAL_VARIANTS = ("pimbrl-learned-correction", "physics-wrong", "physics-learned", "hybrid-learned", "physics-true")
+
+
+def uses_pimbrl(variant: str) -> bool:
+    """Whether ``variant`` runs the method pimbrl (and takes ``--pimbrl-args``)."""
+    flags = variant_args(variant, "", "", "")
+    return flags[flags.index("--method") + 1] == "pimbrl"
 
 
 def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
@@ -61,6 +75,14 @@ def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
         return variant_args("pimbrl-learned", true, prior, f"{learn},correction")
     if variant == "pimbrl-true":
         return ["--method", "pimbrl", *env_kwargs]
+    if variant == "physics-wrong":
+        return ["--method", "mbrl", *env_kwargs, "--dyna.physics-prior", prior, "--dyna.model", "physics"]
+    if variant == "physics-learned":
+        return [*variant_args("pimbrl-learned", true, prior, learn), "--dyna.model", "physics"]
+    if variant == "hybrid-learned":
+        return [*variant_args("pimbrl-learned", true, prior, learn), "--dyna.model", "hybrid"]
+    if variant == "physics-true":
+        return ["--method", "mbrl", *env_kwargs, "--dyna.model", "physics"]
     raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS + OPTIONAL_VARIANTS)}")
 
 
@@ -190,13 +212,13 @@ def main() -> None:
     unknown = [v for v in variants if v not in VARIANTS + OPTIONAL_VARIANTS]
     if unknown:
         parser.error(f"unknown variant(s) {', '.join(unknown)}; choose from {', '.join(VARIANTS + OPTIONAL_VARIANTS)}")
-    if args.pimbrl_args and not any(v.startswith("pimbrl") for v in variants):
+    if args.pimbrl_args and not any(uses_pimbrl(v) for v in variants):
         print("warning: --pimbrl-args is ignored: no pimbrl variant is run")
     specs = []
     for seed in seeds:  # seed by seed, so that runs cut short leave every variant on the first seeds
         for variant in variants:
             flags = variant_args(variant, args.true, args.prior, args.learn)
-            if variant.startswith("pimbrl"):
+            if uses_pimbrl(variant):
                 flags += shlex.split(args.pimbrl_args)
             argv = [args.env, "--seed", str(seed), "--threads", "1", "--steps", str(args.steps), *flags, *extra]
             specs.append(RunSpec(variant, seed, out / variant / f"seed{seed}", config_from_argv(argv)))

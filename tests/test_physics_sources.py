@@ -135,7 +135,7 @@ def test_physics_only_training_before_labels_and_the_relative_gate(tmp_path) -> 
     assert m.val_mse < m.baseline_mse  # the equation alone beat predicting no change on real transitions
     with pytest.raises(ConfigError, match="applies to pimbrl"):
         _pendulum("mbrl", physics_start=100)
-    with pytest.raises(ConfigError, match="applies to the PDE environments"):
+    with pytest.raises(ConfigError, match="equivariant is a network on a PDE's grid"):
         _pendulum("pimbrl", model="equivariant")
 
 

@@ -29,6 +29,8 @@ __all__ = [
     "MAX_SEED",
     "MAX_STEPS",
     "MAX_TRANSITIONS",
+    "MODEL_KINDS",
+    "PHYSICS_MODEL_KINDS",
     "ConfigError",
     "add_arguments",
     "at_most",
@@ -47,6 +49,11 @@ __all__ = [
 #: a dataclass instance (typeshed's protocol: anything with ``__dataclass_fields__``)
 D = TypeVar("D", bound="DataclassInstance")
 
+
+#: transition models with the prior's coarse scheme inside (pimbrl.models.hybrid), for any system
+PHYSICS_MODEL_KINDS = ("physics", "hybrid")
+#: every kind of transition model (pimbrl.models.make_model): the networks, then the physics-based ones
+MODEL_KINDS = ("convlstm", "equivariant", *PHYSICS_MODEL_KINDS)
 
 #: Upper bounds of the sizes and counts of the configurations (docs/training.md, section 'Bounds'): far
 #: beyond any run this CPU library can make, low enough that a typo gives a message instead of an

@@ -1,17 +1,22 @@
 """Transition models, the physics-informed residual, model training and imagined environments."""
 
+from .factory import MODELS, PHYSICS_MODELS, make_model
+from .hybrid import HybridModel, PhysicsModel
 from .model_env import ModelEnv
-from .networks import MODELS, ConvLSTMModel, EquivariantConvModel, MLPModel, TransitionModel, make_model
+from .networks import ConvLSTMModel, EquivariantConvModel, MLPModel, TransitionModel
 from .residual import PhysicsResidual
 from .trainer import ModelTrainer, TransitionData
 
 __all__ = [
     "MODELS",
+    "PHYSICS_MODELS",
     "ConvLSTMModel",
     "EquivariantConvModel",
+    "HybridModel",
     "MLPModel",
     "ModelEnv",
     "ModelTrainer",
+    "PhysicsModel",
     "PhysicsResidual",
     "TransitionData",
     "TransitionModel",

@@ -21,7 +21,7 @@ from torch import nn
 from ..physics import Physics
 from ..physics.pde import SemilinearPDE
 
-__all__ = ["MODELS", "ConvLSTMModel", "EquivariantConvModel", "MLPModel", "TransitionModel", "make_model"]
+__all__ = ["ConvLSTMModel", "EquivariantConvModel", "MLPModel", "TransitionModel"]
 
 
 class TransitionModel(nn.Module):
@@ -104,6 +104,10 @@ class MLPModel(TransitionModel):
             if i < len(sizes) - 2:
                 layers.append(nn.SiLU())
         self.net = nn.Sequential(*layers)
+
+    def increments(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The predicted increment ``delta_std * MLP(...)`` ``(B, 1, state_dim)`` (``predict_increment`` models)."""
+        return (self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1)) * self.delta_std)[:, None, :]
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """The next state as ``(B, 1, state_dim)``: a single "intermediate" state."""
@@ -224,34 +228,14 @@ class EquivariantConvModel(TransitionModel):
             raise ValueError("actuator shapes must be finite")
         self.shapes.copy_(new)
 
-    def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """The ``n_intermediate`` predicted fields ``(B, N, n)``; the last is ``u_{t+1}``."""
+    def increments(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The predicted increments ``v_i - u`` ``(B, N, n)``: ``delta_std`` times the network's output."""
         forcing = self.scale_action(a) @ self.shapes  # (B, n): the actuators' field at full scale = 1
         h = nn.functional.silu(self.inp(torch.stack([self.normalize(u), forcing], dim=1)))
         for block in self.blocks:
             h = h + nn.functional.silu(block(h))
-        return u[:, None, :] + self.out(h) * self.delta_std
+        return self.out(h) * self.delta_std
 
-
-MODELS = ("convlstm", "equivariant")
-
-
-def make_model(
-    physics: Physics,
-    n_intermediate: int = 5,
-    hidden: Sequence[int] = (256, 256),
-    predict_increment: bool = True,
-    kind: str = "convlstm",
-) -> TransitionModel:
-    """The transition model for ``physics``.
-
-    For the PDE systems the paper's ConvLSTM (``kind="convlstm"``) or the translation-equivariant
-    convolutional model (``kind="equivariant"``); an MLP for the ODE systems.
-    """
-    if isinstance(physics, SemilinearPDE):
-        if kind == "equivariant":
-            return EquivariantConvModel(physics, n_intermediate=n_intermediate)
-        if kind != "convlstm":
-            raise ValueError(f"model kind must be one of {', '.join(MODELS)}, got {kind!r}")
-        return ConvLSTMModel(physics, n_intermediate=n_intermediate, predict_increment=predict_increment)
-    return MLPModel(physics, hidden=hidden, predict_increment=predict_increment)
+    def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """The ``n_intermediate`` predicted fields ``(B, N, n)``; the last is ``u_{t+1}``."""
+        return u[:, None, :] + self.increments(u, a)

@@ -85,7 +85,9 @@ class ModelTrainer:
         self.weight_data = float(weight_data)
         self.weight_physics = float(weight_physics)
         self.grad_clip = grad_clip
-        self.optimizer = torch.optim.Adam(model.parameters(), lr=lr, fused=True)
+        params = list(model.parameters())
+        # a model with nothing to train (the physics-only model) has no optimiser: its loss is only measured
+        self.optimizer = torch.optim.Adam(params, lr=lr, fused=True) if params else None
         self.coefficients = residual.coefficients if residual is not None else None
         self.coefficient_optimizer = (
             torch.optim.Adam(self.coefficients.parameters(), lr=coefficient_lr) if self.coefficients is not None else None
@@ -123,11 +125,12 @@ class ModelTrainer:
             metrics["model/physics_loss"] = float(physics_loss.detach())
         if not torch.isfinite(loss):
             raise FloatingPointError(f"the model loss became {float(loss)}; lower the model learning rate")
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.grad_clip is not None:
-            torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.grad_clip)
-        self.optimizer.step()
+        if self.optimizer is not None:
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if self.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.grad_clip)
+            self.optimizer.step()
         if labelled is not None and self.coefficient_optimizer is not None:
             metrics["model/coefficient_loss"] = self._fit_coefficients(labelled)
         self.steps += 1
@@ -178,6 +181,8 @@ class ModelTrainer:
         first = labelled if labelled is not None else unlabelled
         if isinstance(first, TransitionData):
             self.ensure_normalization(first)
+        if self.optimizer is None and self.coefficient_optimizer is None:
+            return {}  # nothing to fit (the physics-only model with a fixed prior): no batch is drawn
         totals: dict[str, float] = {}
         for _ in range(steps):
             m = self.step(
@@ -207,7 +212,8 @@ class ModelTrainer:
 
     def state_dict(self) -> dict:
         """Model and optimiser state, learned coefficients (if any) and the step count, for checkpoints."""
-        state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "steps": self.steps}
+        optimizer = self.optimizer.state_dict() if self.optimizer is not None else None
+        state = {"model": self.model.state_dict(), "optimizer": optimizer, "steps": self.steps}
         if self.coefficients is not None and self.coefficient_optimizer is not None:
             state["coefficients"] = self.coefficients.state_dict()
             state["coefficient_optimizer"] = self.coefficient_optimizer.state_dict()
@@ -216,7 +222,8 @@ class ModelTrainer:
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` saved."""
         self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        if self.optimizer is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
         if self.coefficients is not None and self.coefficient_optimizer is not None:
             self.coefficients.load_state_dict(state["coefficients"])
             self.coefficient_optimizer.load_state_dict(state["coefficient_optimizer"])

@@ -30,6 +30,7 @@ from ..config import (
     MAX_SEED,
     MAX_STEPS,
     MAX_TRANSITIONS,
+    MODEL_KINDS,
     ConfigError,
     at_most,
     field_type,
@@ -118,7 +119,14 @@ class DynaConfig:
         0.1, "accuracy=relative: the model is used below this fraction of the no-change error", in_range(0.0, 1.0, lo_open=True)
     )
     model: str = param(
-        "convlstm", "PDE model: convlstm (the paper's) or equivariant (fully convolutional)", one_of("convlstm", "equivariant")
+        "convlstm",
+        "the model: convlstm (the paper's, PDEs) or equivariant (fully convolutional, PDEs) -- the ODEs' is an MLP "
+        "-- or, for any system, the prior's coarse scheme itself: physics (no network) or hybrid (the scheme plus "
+        "a correction network that starts at zero; pimbrl.models.hybrid)",
+        one_of(*MODEL_KINDS),
+    )
+    correction_scale: float = param(
+        0.01, "model=hybrid: the correction network's scale, relative to the increments' standard deviation", positive()
     )
     physics_sources: str = param(
         "auto",
@@ -295,7 +303,6 @@ PIMBRL_ONLY = (
 PDE_ONLY = (
     "n_intermediate",
     "residual",
-    "model",
     "reward_quadrature",
     "correction_penalty",
 )
@@ -593,6 +600,19 @@ def _check_runnable(cfg: TrainConfig) -> None:
         check_physics_sources(cfg.env, cfg.dyna.physics_sources)
     if cfg.method in MODEL_BASED:
         check_coefficients(cfg)
+        check_model_kind(cfg)
+
+
+def check_model_kind(cfg: TrainConfig) -> None:
+    """A clear :class:`ConfigError` for a model kind the system cannot have, or a setting it ignores."""
+    d = cfg.dyna
+    if d.model == "equivariant" and not is_pde_env(cfg.env):
+        raise ConfigError(
+            f"--dyna.model equivariant is a network on a PDE's grid, not for {cfg.env}: an ODE system's network "
+            "is an MLP (the default), or use --dyna.model physics or hybrid"
+        )
+    if d.model != "hybrid" and d.correction_scale != DynaConfig().correction_scale:
+        raise ConfigError(f"--dyna.correction-scale sets the hybrid model's correction; give --dyna.model hybrid (now {d.model})")
 
 
 def physics_coefficient_names(env: str) -> tuple[str, ...]:

@@ -37,10 +37,11 @@ from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
 from ..config import parse_learned, parse_prior
 from ..envs import Task
-from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
+from ..models import PHYSICS_MODELS, ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
 from ..models.state_sources import broad_actions, broad_pairs, even_shares, parse_sources
 from ..physics import Physics
+from ..physics.pde import SemilinearPDE
 from ..spaces import ActionAdapter
 from .config import TrainConfig
 from .streams import RandomStreams
@@ -85,14 +86,13 @@ class DynaModel:
         self.physics = task.physics.with_coefficients(**parse_prior(d.physics_prior))
         self.adapter = adapter
         self.streams = streams
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(streams.integer_seed("model_init"))
-            self.model = make_model(self.physics, n_intermediate=d.n_intermediate, kind=d.model)
         scheme: Scheme = "solver" if d.residual == "solver" else "etd"
+        # the model's states per control step: N for a PDE, one per solver step for an ODE (MLP, N = 1)
+        n_states = d.n_intermediate if isinstance(self.physics, SemilinearPDE) else self.physics.substeps
         residual = (
             PhysicsResidual(
                 self.physics,
-                self.model.n_intermediate,
+                n_states,
                 scheme,
                 d.residual_units,
                 learned=parse_learned(d.learn_coefficients),
@@ -101,6 +101,13 @@ class DynaModel:
             if cfg.method == "pimbrl"
             else None
         )
+        # a model with the physics inside steps the residual's scheme (and follows its learned coefficients)
+        inside = (residual or PhysicsResidual(self.physics, n_states, scheme)) if d.model in PHYSICS_MODELS else None
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(streams.integer_seed("model_init"))
+            self.model = make_model(
+                self.physics, n_intermediate=d.n_intermediate, kind=d.model, scheme=inside, correction_scale=d.correction_scale
+            )
         self.sources = parse_sources(d.physics_sources, self.physics) if residual is not None else ()
         self.trainer = ModelTrainer(
             self.model, residual, lr=d.model_lr, weight_physics=d.physics_weight, coefficient_lr=d.coefficient_lr

@@ -1,0 +1,51 @@
+"""The transition model of a run, by kind: a network (the paper's or the equivariant one) or the physics in it."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from ..config import MODEL_KINDS, PHYSICS_MODEL_KINDS
+from ..physics import Physics
+from ..physics.pde import SemilinearPDE
+from .hybrid import HybridModel, PhysicsModel
+from .networks import ConvLSTMModel, EquivariantConvModel, MLPModel, TransitionModel
+from .residual import PhysicsResidual
+
+__all__ = ["MODELS", "PHYSICS_MODELS", "make_model"]
+
+#: models with the prior's coarse scheme inside (any system), and every kind
+PHYSICS_MODELS = PHYSICS_MODEL_KINDS
+MODELS = MODEL_KINDS
+
+
+def make_model(
+    physics: Physics,
+    n_intermediate: int = 5,
+    hidden: Sequence[int] = (256, 256),
+    predict_increment: bool = True,
+    kind: str = "convlstm",
+    scheme: PhysicsResidual | None = None,
+    correction_scale: float = 0.01,
+) -> TransitionModel:
+    """The transition model for ``physics``.
+
+    Networks: for the PDE systems the paper's ConvLSTM (``kind="convlstm"``) or the translation-equivariant
+    convolutional model (``kind="equivariant"``); an MLP for the ODE systems (whatever ``kind`` names).
+    With the physics inside (:mod:`pimbrl.models.hybrid`, any system): the prior's coarse scheme alone
+    (``kind="physics"``) or with a correction network (``kind="hybrid"``, scaled by ``correction_scale``);
+    ``scheme`` gives that scheme (a run passes its physics residual, so that the model follows the learned
+    coefficients), by default the ETDRK4 scheme of ``physics`` with ``n_intermediate`` steps (PDEs) or its
+    solver step (ODEs).
+    """
+    if kind not in MODELS:
+        raise ValueError(f"model kind must be one of {', '.join(MODELS)}, got {kind!r}")
+    pde = isinstance(physics, SemilinearPDE)
+    if kind in PHYSICS_MODELS:
+        if scheme is None:
+            scheme = PhysicsResidual(physics, n_intermediate if pde else physics.substeps)
+        return PhysicsModel(scheme) if kind == "physics" else HybridModel(scheme, correction_scale)
+    if not pde:
+        return MLPModel(physics, hidden=hidden, predict_increment=predict_increment)
+    if kind == "equivariant":
+        return EquivariantConvModel(physics, n_intermediate=n_intermediate)  # type: ignore[arg-type]
+    return ConvLSTMModel(physics, n_intermediate=n_intermediate, predict_increment=predict_increment)  # type: ignore[arg-type]

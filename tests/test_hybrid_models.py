@@ -1,0 +1,143 @@
+"""Models with the physics inside: the prior's coarse scheme alone (physics) or with a correction (hybrid)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pimbrl.cli import main
+from pimbrl.config import ConfigError
+from pimbrl.models import HybridModel, ModelTrainer, PhysicsModel, PhysicsResidual, TransitionData, make_model
+from pimbrl.physics import Burgers, KuramotoSivashinsky, Pendulum
+from pimbrl.training import RunDirectory, create_run, resolve_config, train
+from pimbrl.training.cli_args import config_from_argv
+
+from .test_dyna import DYNA_SMOKE, SMALL_MODEL
+from .test_training import TINY
+
+
+def _ks_transitions(ks_states, n: int = 24, seed: int = 0) -> TransitionData:
+    """``n`` KS transitions of the simulator under random actions, as float32 tensors."""
+    phys = KuramotoSivashinsky()
+    rng = np.random.default_rng(seed)
+    u = np.asarray(ks_states[:n], dtype=np.float64)
+    a = rng.uniform(-0.5, 0.5, size=(n, 4))
+    u1 = phys.advance_terms(u, a)[0]
+    return TransitionData(*(torch.as_tensor(x, dtype=torch.float32) for x in (u, a, u1)))
+
+
+def test_the_physics_model_is_the_coarse_scheme_and_accurate_without_a_label(ks_states) -> None:
+    data = _ks_transitions(ks_states)
+    model = make_model(KuramotoSivashinsky(), 5, kind="physics")
+    assert isinstance(model, PhysicsModel) and not list(model.parameters())
+    path = model(data.state, data.action)
+    assert path.shape == (24, 5, 64) and path.dtype == torch.float32
+    expected = PhysicsResidual(KuramotoSivashinsky(), 5).rollout(data.state.double(), data.action.double())
+    np.testing.assert_allclose(path.numpy(), expected.numpy(), rtol=0, atol=1e-5)
+    trainer = ModelTrainer(model)
+    mse = trainer.validation_mse(data)
+    assert mse < 1e-6  # the equivariant network, untrained: ~6e-3; after 300 steps on 100 labels: ~2e-5
+    # nothing to fit: fit draws no batch and changes nothing
+    rng = np.random.default_rng(0)
+    assert trainer.fit(5, 8, rng, labelled=data) == {}
+    assert rng.bit_generator.state == np.random.default_rng(0).bit_generator.state
+    assert trainer.validation_mse(data) == mse
+    assert trainer.state_dict()["optimizer"] is None
+
+
+def test_a_wrong_prior_makes_a_wrong_physics_model(ks_states) -> None:
+    data = _ks_transitions(ks_states)
+    right = ModelTrainer(make_model(KuramotoSivashinsky(), 5, kind="physics")).validation_mse(data)
+    wrong = ModelTrainer(make_model(KuramotoSivashinsky(convection=1.3), 5, kind="physics")).validation_mse(data)
+    assert wrong > 100 * right
+
+
+def test_the_physics_model_follows_the_residuals_learned_coefficients(ks_states) -> None:
+    data = _ks_transitions(ks_states, n=8)
+    prior = KuramotoSivashinsky(convection=1.3)
+    residual = PhysicsResidual(prior, 5, learned={"convection": None})
+    model = make_model(prior, 5, kind="physics", scheme=residual)
+    before = model(data.state, data.action)
+    assert residual.coefficients is not None
+    with torch.no_grad():  # a free coefficient is prior * (1 + theta): move it to the true 1.0
+        residual.coefficients.theta.fill_((1.0 - 1.3) / 1.3)
+    assert residual.current_physics().coefficient_values()["convection"] == pytest.approx(1.0)
+    after = model(data.state, data.action)
+    exact = make_model(KuramotoSivashinsky(), 5, kind="physics")(data.state, data.action)
+    np.testing.assert_allclose(after.numpy(), exact.numpy(), rtol=0, atol=1e-5)
+    assert (after - before).abs().max() > 1e-3
+
+
+def test_the_hybrid_model_starts_as_the_physics_and_trains_only_its_correction(ks_states) -> None:
+    data = _ks_transitions(ks_states)
+    torch.manual_seed(0)
+    hybrid = make_model(KuramotoSivashinsky(), 5, kind="hybrid")
+    assert isinstance(hybrid, HybridModel)
+    physics = make_model(KuramotoSivashinsky(), 5, kind="physics")
+    trainer = ModelTrainer(hybrid, lr=1e-3)
+    trainer.ensure_normalization(data)
+    torch.testing.assert_close(hybrid(data.state, data.action), physics(data.state, data.action), rtol=0, atol=0)
+    start = trainer.validation_mse(data)
+    trainer.fit(20, 16, np.random.default_rng(0), labelled=data)
+    correction = hybrid.correction(data.state, data.action).detach()
+    assert correction.abs().max() > 0  # the data loss moved the correction
+    # scaled small: 20 Adam steps leave the model within a few times the physics' own error
+    assert trainer.validation_mse(data) < 10 * start + 1e-8
+    grads = [p.grad for p in hybrid.parameters()]
+    assert all(g is not None for g in grads)
+
+
+def test_on_an_ode_the_physics_model_is_the_solver_step() -> None:
+    phys = Pendulum()
+    rng = np.random.default_rng(0)
+    u = torch.as_tensor(rng.uniform(-1, 1, size=(16, 2)), dtype=torch.float64)
+    a = torch.as_tensor(rng.uniform(-2, 2, size=(16, 1)), dtype=torch.float64)
+    model = make_model(phys, kind="physics")
+    assert model.n_intermediate == 1
+    torch.testing.assert_close(model(u, a)[:, 0], phys.canonical(phys.step(u, a)), rtol=0, atol=0)
+    hybrid = make_model(phys, kind="hybrid")
+    hybrid.fit_normalization(u.float(), model(u, a)[:, 0].float())
+    torch.testing.assert_close(hybrid(u.float(), a.float()), model(u.float(), a.float()), rtol=0, atol=0)
+
+
+def test_unknown_model_kind_and_bad_scale_are_refused() -> None:
+    with pytest.raises(ValueError, match="model kind must be one of convlstm, equivariant, physics, hybrid"):
+        make_model(Burgers(), kind="fourier")
+    with pytest.raises(ValueError, match="correction_scale"):
+        make_model(Burgers(), kind="hybrid", correction_scale=0.0)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["cartpole", "--method", "mbrl", "--dyna.model", "equivariant"], "network on a PDE's grid"),
+        (
+            ["burgers", "--method", "mbrl", "--dyna.model", "physics", "--dyna.correction-scale", "0.1"],
+            "give --dyna.model hybrid",
+        ),
+    ],
+)
+def test_model_kind_settings_that_cannot_work_are_refused(argv: list[str], message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        resolve_config(config_from_argv(argv))
+
+
+@pytest.mark.parametrize(("env", "kind"), [("burgers", "physics"), ("burgers", "hybrid"), ("pendulum", "hybrid")])
+def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str, kind: str, tmp_path) -> None:
+    smoke = [a for a in DYNA_SMOKE[env]]
+    i = smoke.index("--dyna.start-physics-after")
+    smoke = smoke[:i] + smoke[i + 2 :]  # mbrl: no physics loss
+    argv = [env, *smoke, *TINY, *SMALL_MODEL, "--method", "mbrl", "--dyna.model", kind, "--checkpoint-every", "60"]
+    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    train(run)
+    rows = RunDirectory(tmp_path / "run").metrics([]).read()
+    assert all(r["model/in_use"] == "1" for r in rows if int(r["step"]) > int(smoke[smoke.index("--dyna.start-model-after") + 1]))
+    assert int(rows[-1]["imagined_total"]) > 0
+    assert ("model/data_loss" in rows[-1] and rows[-1]["model/data_loss"] != "") == (kind == "hybrid")
+    # a longer budget continues from the checkpoint (the physics model has no optimiser state)
+    longer = int(smoke[smoke.index("--steps") + 1]) + 60
+    assert main(["resume", str(tmp_path / "run"), "--total-steps", str(longer), "--quiet"]) == 0
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["status"] == "finished"
