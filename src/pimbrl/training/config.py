@@ -126,7 +126,9 @@ class DynaConfig:
         one_of(*MODEL_KINDS),
     )
     correction_scale: float = param(
-        0.01, "model=hybrid: the correction network's scale, relative to the increments' standard deviation", positive()
+        0.01,
+        "model=hybrid: the correction network's scale, relative to the increments' standard deviation",
+        [positive(), at_most(1e3)],
     )
     physics_sources: str = param(
         "auto",
