@@ -147,10 +147,19 @@ def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
     with open(out / "study.csv") as fh:
         rows = list(csv.DictReader(fh))
     models = {(r["labels"], r["model"]) for r in rows}
-    assert models == {("0", "no-change"), ("0", "physics"), ("50", "data"), ("50", "physics")}
+    assert models == {(n, m) for n in ("0", "50") for m in ("physics", "physics-only")} | {("0", "no-change"), ("50", "data")}
     assert {r["horizon"] for r in rows} == {"1", "3"} and {r["split"] for r in rows} == {"in", "out"}
     assert all(float(r["mean"]) >= 0 for r in rows) and (out / "study.png").exists()
+    # the prior's scheme is Cart-Pole's exact solver step: error zero, whatever the labels
+    assert all(float(r["mean"]) < 1e-10 for r in rows if r["model"] == "physics-only")
+    # a study of some models only: the same test transitions (they depend on the seed alone)
+    assert main([*args[:3], str(tmp_path / "only"), *args[4:], "--models", "data,physics-only"]) == 0
+    with open(tmp_path / "only" / "study.csv") as fh:
+        only = list(csv.DictReader(fh))
+    assert {r["model"] for r in only} == {"no-change", "data", "physics-only"}
+    assert [r for r in only if r["model"] == "data"] == [r for r in rows if r["model"] == "data"]
     assert main([*args[:3], str(tmp_path / "bad"), "--labels", "10", "--sources", "symmetry"]) == 2
+    assert main([*args[:3], str(tmp_path / "bad2"), *args[4:], "--models", "data,fourier"]) == 2
 
 
 def test_the_study_measures_errors_in_the_states_own_geometry() -> None:

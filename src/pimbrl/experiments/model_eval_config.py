@@ -49,6 +49,11 @@ class ModelEvalConfig:
     sources: str = param("train,imagined", "physics-loss sources: train, imagined, symmetry, scaled, noise, box")
     units: str = param("substep", "units of the physics loss: substep or step", one_of("substep", "step"))
     model: str = param("convlstm", "PDE model: convlstm or equivariant", one_of("convlstm", "equivariant"))
+    models: str = param(
+        "",
+        "study: the models to compare, comma-separated (default: all of data, physics, physics-true, "
+        "physics-learned, physics-only that the study has)",
+    )
     env_coefficients: str = param(
         "", "study: the environment's physical coefficients where they differ from the paper's, e.g. nu=0.013"
     )

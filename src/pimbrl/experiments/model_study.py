@@ -16,7 +16,11 @@ With a physics prior that differs from the environment (``env_coefficients``, ``
 coefficients (the upper reference) and, with ``learn_coefficients``, ``physics-learned`` with the prior's
 coefficients fitted to the labels (:mod:`pimbrl.models.coefficients`; the identified values are recorded).
 
-Both are tested on the same held-out in-sample transitions and on the out-of-sample transitions of
+``physics-only`` is the prior's coarse scheme itself as the model (:class:`pimbrl.models.PhysicsModel`,
+trained on nothing, so the same at every label count). ``models`` restricts the study to some of these (the
+test transitions depend only on the seed, so rows of separate studies with the same seeds compare).
+
+All are tested on the same held-out in-sample transitions and on the out-of-sample transitions of
 :data:`~pimbrl.experiments.model_eval.OUT_OF_SAMPLE`, one step ahead and ``rollout_lengths`` chained
 steps ahead (open loop, the same random actions as the truth). Outputs: ``study.csv`` (one row per seed,
 labels, model, split, horizon: mean, median and 90th percentile of the per-transition MSE),
@@ -176,6 +180,13 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
         variants["physics-true"] = (task.physics, {})
     if learned:
         variants["physics-learned"] = (prior, learned)
+    names = ["data", *variants, "physics-only"]  # physics-only: the prior's coarse scheme, trained on nothing
+    if cfg.models:
+        chosen = [m.strip() for m in cfg.models.split(",") if m.strip()]
+        unknown = [m for m in chosen if m not in names]
+        if unknown:
+            raise ValueError(f"models: {', '.join(unknown)} not in this study; choose from {', '.join(names)}")
+        names = [m for m in names if m in chosen]
     identified: list[dict[str, Any]] = []
     sources = _check_sources([s.strip() for s in cfg.sources.split(",") if s.strip()], task)
     labels = sorted(set(cfg.labels))
@@ -195,10 +206,12 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
         observed = pool.state[: max(cfg.seed_states, 1)]
         for n_labels in labels:
             labelled = pool.take(torch.arange(n_labels)) if n_labels else None
-            for name in ("data", *variants):
+            for name in names:
                 physics, learn = variants.get(name, (prior, {}))
                 if name == "data" and labelled is None:
                     model = None  # no labels, no physics: predict no change
+                elif name == "physics-only":  # the same at every label count: it learns nothing
+                    model = make_model(prior, n_intermediate=cfg.n_intermediate, kind="physics")
                 else:
                     model, found = _train(task, cfg, name, labelled, observed, sources, seed, physics, learn)
                     if found:
@@ -315,6 +328,7 @@ def _plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
         "physics": "tab:blue",
         "physics-learned": "tab:green",
         "physics-true": "tab:purple",
+        "physics-only": "tab:brown",
         "no-change": "tab:gray",
     }
     for i, split in enumerate(("in", "out")):
