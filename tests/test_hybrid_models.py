@@ -141,3 +141,18 @@ def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str,
     longer = int(smoke[smoke.index("--steps") + 1]) + 60
     assert main(["resume", str(tmp_path / "run"), "--total-steps", str(longer), "--quiet"]) == 0
     assert json.loads((tmp_path / "run" / "config.json").read_text())["status"] == "finished"
+
+
+def test_the_model_study_fits_the_schemes_coefficients_without_a_network(tmp_path) -> None:
+    """physics-only-learned: the wrong prior's scheme with nu fitted to 50 labels beats the scheme as given."""
+    out = tmp_path / "study"
+    argv = ["model-eval", "burgers", "--run-dir", str(out), "--labels", "0,50", "--steps", "150", "--test-transitions", "20",
+            "--seed-states", "60", "--rollout-lengths", "1", "--env-coefficients", "nu=0.013", "--physics-prior", "nu=0.01",
+            "--learn-coefficients", "nu", "--models", "physics-only,physics-only-learned"]  # fmt: skip
+    assert main(argv) == 0
+    payload = json.loads((out / "study.json").read_text())
+    error = {(r["labels"], r["model"]): r["mean"] for r in payload["summary"] if r["split"] == "out"}
+    assert error[(0, "physics-only-learned")] == error[(0, "physics-only")]  # no label, nothing fitted
+    assert error[(50, "physics-only-learned")] < 0.2 * error[(50, "physics-only")]
+    (found,) = payload["identified"]
+    assert found["model"] == "physics-only-learned" and abs(found["nu"] - 0.013) < 0.1 * 0.003

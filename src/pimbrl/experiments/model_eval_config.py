@@ -52,7 +52,7 @@ class ModelEvalConfig:
     models: str = param(
         "",
         "study: the models to compare, comma-separated (default: all of data, physics, physics-true, "
-        "physics-learned, physics-only that the study has)",
+        "physics-learned, physics-only, physics-only-learned that the study has)",
     )
     env_coefficients: str = param(
         "", "study: the environment's physical coefficients where they differ from the paper's, e.g. nu=0.013"

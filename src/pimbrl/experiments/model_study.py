@@ -17,7 +17,8 @@ coefficients (the upper reference) and, with ``learn_coefficients``, ``physics-l
 coefficients fitted to the labels (:mod:`pimbrl.models.coefficients`; the identified values are recorded).
 
 ``physics-only`` is the prior's coarse scheme itself as the model (:class:`pimbrl.models.PhysicsModel`,
-trained on nothing, so the same at every label count). ``models`` restricts the study to some of these (the
+trained on nothing, so the same at every label count); with ``learn_coefficients``, ``physics-only-learned``
+is that scheme with the coefficients fitted to the labels (no network). ``models`` restricts the study to some of these (the
 test transitions depend only on the seed, so rows of separate studies with the same seeds compare).
 
 All are tested on the same held-out in-sample transitions and on the out-of-sample transitions of
@@ -46,6 +47,7 @@ from ..models.coefficients import LearnedCoefficients
 from ..models.residual import Scheme
 from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
 from ..physics import Physics
+from ..physics.pde import SemilinearPDE
 from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions
 
 __all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
@@ -180,7 +182,9 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
         variants["physics-true"] = (task.physics, {})
     if learned:
         variants["physics-learned"] = (prior, learned)
-    names = ["data", *variants, "physics-only"]  # physics-only: the prior's coarse scheme, trained on nothing
+    # physics-only: the prior's coarse scheme, trained on nothing; physics-only-learned: that scheme with the
+    # learned coefficients fitted to the labels (the network-free model of the same inverse problem)
+    names = ["data", *variants, "physics-only", *(["physics-only-learned"] if learned else [])]
     if cfg.models:
         chosen = [m.strip() for m in cfg.models.split(",") if m.strip()]
         unknown = [m for m in chosen if m not in names]
@@ -210,12 +214,16 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
                 physics, learn = variants.get(name, (prior, {}))
                 if name == "data" and labelled is None:
                     model = None  # no labels, no physics: predict no change
-                elif name == "physics-only":  # the same at every label count: it learns nothing
-                    model = make_model(prior, n_intermediate=cfg.n_intermediate, kind="physics")
+                elif name == "physics-only" or (name == "physics-only-learned" and labelled is None):
+                    model = make_model(prior, n_intermediate=cfg.n_intermediate, kind="physics")  # learns nothing
+                elif name == "physics-only-learned":
+                    assert labelled is not None
+                    model, found = _fit_scheme(cfg, prior, learned, labelled, seed)
+                    identified.append({"seed": seed, "labels": n_labels, "model": name, **found})
                 else:
                     model, found = _train(task, cfg, name, labelled, observed, sources, seed, physics, learn)
                     if found:
-                        identified.append({"seed": seed, "labels": n_labels, **found})
+                        identified.append({"seed": seed, "labels": n_labels, "model": name, **found})
                 for split, traj in tests.items():
                     for h in horizons:
                         mse = _rollout_mse(model, traj, h, task)
@@ -258,6 +266,19 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     atomic_write_bytes(out_dir / "study.json", (json.dumps(payload, indent=2) + "\n").encode())
     _plot(summary, out_dir / "study.png", env_id)
     return payload
+
+
+def _fit_scheme(
+    cfg: ModelEvalConfig, prior: Physics, learned: dict, labelled: TransitionData, seed: int
+) -> tuple[TransitionModel, dict[str, float]]:
+    """The prior's coarse scheme with ``learned`` coefficients fitted to the labels (``cfg.steps`` Adam steps)."""
+    n = cfg.n_intermediate if isinstance(prior, SemilinearPDE) else prior.substeps
+    residual = PhysicsResidual(prior, n, "etd" if isinstance(prior, SemilinearPDE) else "solver", learned=learned)
+    model = make_model(prior, n_intermediate=n, kind="physics", scheme=residual)
+    trainer = ModelTrainer(model, residual, coefficient_lr=cfg.coefficient_lr)
+    trainer.fit(cfg.steps, cfg.batch_size, np.random.default_rng(seed + 1), labelled=labelled)
+    assert residual.coefficients is not None
+    return model, residual.coefficients.current()
 
 
 def _train(
@@ -329,6 +350,7 @@ def _plot(summary: list[dict[str, Any]], path: Path, title: str) -> None:
         "physics-learned": "tab:green",
         "physics-true": "tab:purple",
         "physics-only": "tab:brown",
+        "physics-only-learned": "tab:olive",
         "no-change": "tab:gray",
     }
     for i, split in enumerate(("in", "out")):
