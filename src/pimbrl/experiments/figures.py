@@ -174,7 +174,7 @@ def rollout_snapshots(run_dir: str | Path, out: str | Path, lengths: Sequence[in
     model = trainer.transition_model
     if model is None or trainer.model is None:
         raise ValueError(f"{run_dir} is a {trainer.cfg.method} run without a model; use an mbrl or pimbrl run")
-    if trainer.model.trainer.steps == 0:
+    if trainer.model.trainer.steps == 0 and trainer.model.trainer.optimizer is not None:  # a physics model: no training
         start = trainer.cfg.dyna.start_model_after
         raise ValueError(
             f"{run_dir}: its model was never trained (the run has {trainer.t:,d} steps and its model starts after "

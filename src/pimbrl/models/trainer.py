@@ -181,8 +181,11 @@ class ModelTrainer:
         first = labelled if labelled is not None else unlabelled
         if isinstance(first, TransitionData):
             self.ensure_normalization(first)
-        if self.optimizer is None and self.coefficient_optimizer is None:
-            return {}  # nothing to fit (the physics-only model with a fixed prior): no batch is drawn
+        if self.optimizer is None:  # a model with no parameter (the physics-only model): its physics loss trains
+            # nothing, so only learned coefficients are fitted, on labels; without them (or labels) no batch is drawn
+            unlabelled = None
+            if self.coefficient_optimizer is None or labelled is None:
+                return {}
         totals: dict[str, float] = {}
         for _ in range(steps):
             m = self.step(
