@@ -160,6 +160,8 @@ def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
     assert [r for r in only if r["model"] == "data"] == [r for r in rows if r["model"] == "data"]
     assert main([*args[:3], str(tmp_path / "bad"), "--labels", "10", "--sources", "symmetry"]) == 2
     assert main([*args[:3], str(tmp_path / "bad2"), *args[4:], "--models", "data,fourier"]) == 2
+    assert main([*args[:3], str(tmp_path / "bad3"), *args[4:], "--models", ","]) == 2
+    assert not (tmp_path / "bad2").exists() and not (tmp_path / "bad3").exists()  # refused before anything is written
 
 
 def test_the_study_measures_errors_in_the_states_own_geometry() -> None:

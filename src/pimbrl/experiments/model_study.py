@@ -47,7 +47,6 @@ from ..models.coefficients import LearnedCoefficients
 from ..models.residual import Scheme
 from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
 from ..physics import Physics
-from ..physics.pde import SemilinearPDE
 from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions
 
 __all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
@@ -188,6 +187,8 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     if cfg.models:
         chosen = [m.strip() for m in cfg.models.split(",") if m.strip()]
         unknown = [m for m in chosen if m not in names]
+        if not chosen:
+            raise ValueError(f"models: name at least one of {', '.join(names)}")
         if unknown:
             raise ValueError(f"models: {', '.join(unknown)} not in this study; choose from {', '.join(names)}")
         names = [m for m in names if m in chosen]
@@ -215,7 +216,8 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
                 if name == "data" and labelled is None:
                     model = None  # no labels, no physics: predict no change
                 elif name == "physics-only" or (name == "physics-only-learned" and labelled is None):
-                    model = make_model(prior, n_intermediate=cfg.n_intermediate, kind="physics")  # learns nothing
+                    scheme = PhysicsResidual(prior, PhysicsResidual.states_per_step(prior, cfg.n_intermediate), _scheme_of(cfg))
+                    model = make_model(prior, kind="physics", scheme=scheme)  # learns nothing
                 elif name == "physics-only-learned":
                     assert labelled is not None
                     model, found = _fit_scheme(cfg, prior, learned, labelled, seed)
@@ -268,12 +270,17 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     return payload
 
 
+def _scheme_of(cfg: ModelEvalConfig) -> Scheme:
+    """The residual scheme the study's settings name."""
+    return "solver" if cfg.scheme == "solver" else "etd"
+
+
 def _fit_scheme(
     cfg: ModelEvalConfig, prior: Physics, learned: dict, labelled: TransitionData, seed: int
 ) -> tuple[TransitionModel, dict[str, float]]:
     """The prior's coarse scheme with ``learned`` coefficients fitted to the labels (``cfg.steps`` Adam steps)."""
-    n = cfg.n_intermediate if isinstance(prior, SemilinearPDE) else prior.substeps
-    residual = PhysicsResidual(prior, n, "etd" if isinstance(prior, SemilinearPDE) else "solver", learned=learned)
+    n = PhysicsResidual.states_per_step(prior, cfg.n_intermediate)
+    residual = PhysicsResidual(prior, n, _scheme_of(cfg), learned=learned)
     model = make_model(prior, n_intermediate=n, kind="physics", scheme=residual)
     trainer = ModelTrainer(model, residual, coefficient_lr=cfg.coefficient_lr)
     trainer.fit(cfg.steps, cfg.batch_size, np.random.default_rng(seed + 1), labelled=labelled)
@@ -298,7 +305,7 @@ def _train(
     """
     torch.manual_seed(seed)
     model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=cfg.model)
-    scheme: Scheme = "solver" if cfg.scheme == "solver" else "etd"
+    scheme = _scheme_of(cfg)
     residual = PhysicsResidual(
         physics, model.n_intermediate, scheme, cfg.units, learned=learned if labelled is not None else None
     )

@@ -42,8 +42,8 @@ def make_model(
     pde = isinstance(physics, SemilinearPDE)
     if kind in PHYSICS_MODELS:
         if scheme is None:
-            scheme = PhysicsResidual(physics, n_intermediate if pde else physics.substeps)
-        return PhysicsModel(scheme) if kind == "physics" else HybridModel(scheme, correction_scale)
+            scheme = PhysicsResidual(physics, PhysicsResidual.states_per_step(physics, n_intermediate))
+        return PhysicsModel(scheme) if kind == "physics" else HybridModel(scheme, correction_scale, hidden=hidden)
     if not pde:
         return MLPModel(physics, hidden=hidden, predict_increment=predict_increment)
     if kind == "equivariant":

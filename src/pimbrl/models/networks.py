@@ -111,8 +111,10 @@ class MLPModel(TransitionModel):
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """The next state as ``(B, 1, state_dim)``: a single "intermediate" state."""
-        out = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1))
-        nxt = u + out * self.delta_std if self.predict_increment else out * self.state_std + self.state_mean
+        if self.predict_increment:
+            nxt = u + self.increments(u, a)[:, 0]
+        else:
+            nxt = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1)) * self.state_std + self.state_mean
         return self.physics.constrain(self.physics.canonical(nxt))[:, None, :]
 
 

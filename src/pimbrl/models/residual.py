@@ -36,7 +36,7 @@ Schemes for ``Phi_h``:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Literal
 
 import numpy as np
@@ -134,21 +134,18 @@ class PhysicsResidual:
             return pde.actuator_shapes
         return np.asarray(pde.operators(self.coefficients.named_values())[2], dtype=np.float64)
 
+    @staticmethod
+    def states_per_step(physics: Physics, n_intermediate: int) -> int:
+        """The states a model emits per control step: ``n_intermediate`` for a PDE, one per solver step for an ODE."""
+        return n_intermediate if isinstance(physics, SemilinearPDE) else physics.substeps
+
     def coarse_step(self, u: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
         """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``.
 
         With learned coefficients, ``fit=True`` keeps the gradient to them (for :meth:`coefficient_loss`).
         """
         if self._etd is not None and self.coefficients is not None:
-            pde = self._etd[0]
-            correction = self.coefficients.correction_symbol(grad=fit)
-            lam, nonlinear_coef, shapes = pde.operators(self.coefficients.values(grad=fit))
-            if correction is not None:
-                lam = torch.as_tensor(lam).to(torch.complex128) + correction
-            step = ETDRK4(torch.as_tensor(lam), pde.n, self.h)
-            f = superpose(a, torch.as_tensor(shapes, dtype=u.dtype))  # keeps the gradient of a learned width
-            coef = torch.as_tensor(nonlinear_coef, dtype=u.dtype)
-            return step.step(u, lambda v: coef * pde.upwind(v) + f)
+            return self._learned_step(fit)(u, a)
         if self._etd is not None:
             pde, etd = self._etd
             f = pde.forcing(a)
@@ -157,6 +154,24 @@ class PhysicsResidual:
         if self.coefficients is not None:  # an ODE system stepped with its learned coefficients
             phys = phys.with_coefficient_tensors(self.coefficients.values(grad=fit))
         return phys.step(u, a, substeps=phys.substeps // self.n)
+
+    def _learned_step(self, fit: bool) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """The ETDRK4 step of a PDE at the learned coefficients' current values, as ``step(u, a)``."""
+        assert self._etd is not None
+        assert self.coefficients is not None
+        pde = self._etd[0]
+        correction = self.coefficients.correction_symbol(grad=fit)
+        lam, nonlinear_coef, shapes = pde.operators(self.coefficients.values(grad=fit))
+        if correction is not None:
+            lam = torch.as_tensor(lam).to(torch.complex128) + correction
+        etd = ETDRK4(torch.as_tensor(lam), pde.n, self.h)
+
+        def step(u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+            f = superpose(a, torch.as_tensor(shapes, dtype=u.dtype))  # keeps the gradient of a learned width
+            coef = torch.as_tensor(nonlinear_coef, dtype=u.dtype)
+            return etd.step(u, lambda v: coef * pde.upwind(v) + f)
+
+        return step
 
     def defects(self, u0: torch.Tensor, path: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """``d_i = v_i - Phi_h(v_{i-1}, a)`` for ``path`` ``(B, N, state_dim)`` from ``u0`` ``(B, state_dim)``."""
@@ -177,6 +192,13 @@ class PhysicsResidual:
         """The coarse scheme's own path ``(B, N, state_dim)`` from ``u0``: the states on which its defects vanish."""
         states: list[torch.Tensor] = []
         u = u0
+        if self._etd is not None and self.coefficients is not None and not fit:
+            # without a gradient the learned step is built once for the N steps (the same states as N builds)
+            step = self._learned_step(fit=False)
+            for _ in range(self.n):
+                u = step(u, a)
+                states.append(u)
+            return torch.stack(states, dim=1)
         for _ in range(self.n):
             u = self.coarse_step(u, a, fit=fit)
             states.append(u)

@@ -41,7 +41,6 @@ from ..models import PHYSICS_MODELS, ModelEnv, ModelTrainer, PhysicsResidual, Tr
 from ..models.residual import Scheme
 from ..models.state_sources import broad_actions, broad_pairs, even_shares, parse_sources
 from ..physics import Physics
-from ..physics.pde import SemilinearPDE
 from ..spaces import ActionAdapter
 from .config import TrainConfig
 from .streams import RandomStreams
@@ -87,8 +86,7 @@ class DynaModel:
         self.adapter = adapter
         self.streams = streams
         scheme: Scheme = "solver" if d.residual == "solver" else "etd"
-        # the model's states per control step: N for a PDE, one per solver step for an ODE (MLP, N = 1)
-        n_states = d.n_intermediate if isinstance(self.physics, SemilinearPDE) else self.physics.substeps
+        n_states = PhysicsResidual.states_per_step(self.physics, d.n_intermediate)
         residual = (
             PhysicsResidual(
                 self.physics,
