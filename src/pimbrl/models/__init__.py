@@ -1,6 +1,6 @@
 """Transition models, the physics-informed residual, model training and imagined environments."""
 
-from .factory import MODELS, PHYSICS_MODELS, make_model
+from .factory import MODELS, make_model
 from .hybrid import HybridModel, PhysicsModel
 from .model_env import ModelEnv
 from .networks import ConvLSTMModel, EquivariantConvModel, MLPModel, TransitionModel
@@ -9,7 +9,6 @@ from .trainer import ModelTrainer, TransitionData
 
 __all__ = [
     "MODELS",
-    "PHYSICS_MODELS",
     "ConvLSTMModel",
     "EquivariantConvModel",
     "HybridModel",

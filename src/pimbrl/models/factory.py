@@ -11,10 +11,9 @@ from .hybrid import HybridModel, PhysicsModel
 from .networks import ConvLSTMModel, EquivariantConvModel, MLPModel, TransitionModel
 from .residual import PhysicsResidual
 
-__all__ = ["MODELS", "PHYSICS_MODELS", "make_model"]
+__all__ = ["MODELS", "make_model"]
 
-#: models with the prior's coarse scheme inside (any system), and every kind
-PHYSICS_MODELS = PHYSICS_MODEL_KINDS
+#: every kind of model (the names live in pimbrl.config, which the command line reads without torch)
 MODELS = MODEL_KINDS
 
 
@@ -40,7 +39,7 @@ def make_model(
     if kind not in MODELS:
         raise ValueError(f"model kind must be one of {', '.join(MODELS)}, got {kind!r}")
     pde = isinstance(physics, SemilinearPDE)
-    if kind in PHYSICS_MODELS:
+    if kind in PHYSICS_MODEL_KINDS:
         if scheme is None:
             scheme = PhysicsResidual(physics, PhysicsResidual.states_per_step(physics, n_intermediate))
         return PhysicsModel(scheme) if kind == "physics" else HybridModel(scheme, correction_scale, hidden=hidden)

@@ -36,6 +36,7 @@ Schemes for ``Phi_h``:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from typing import Literal
 
@@ -190,17 +191,13 @@ class PhysicsResidual:
 
     def rollout(self, u0: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
         """The coarse scheme's own path ``(B, N, state_dim)`` from ``u0``: the states on which its defects vanish."""
+        # without a gradient a learned PDE step is built once for the N steps (the same states as N builds)
+        once = self._etd is not None and self.coefficients is not None and not fit
+        step = self._learned_step(fit=False) if once else functools.partial(self.coarse_step, fit=fit)
         states: list[torch.Tensor] = []
         u = u0
-        if self._etd is not None and self.coefficients is not None and not fit:
-            # without a gradient the learned step is built once for the N steps (the same states as N builds)
-            step = self._learned_step(fit=False)
-            for _ in range(self.n):
-                u = step(u, a)
-                states.append(u)
-            return torch.stack(states, dim=1)
         for _ in range(self.n):
-            u = self.coarse_step(u, a, fit=fit)
+            u = step(u, a)
             states.append(u)
         return torch.stack(states, dim=1)
 

@@ -35,9 +35,9 @@ import torch
 
 from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
-from ..config import parse_learned, parse_prior
+from ..config import PHYSICS_MODEL_KINDS, parse_learned, parse_prior
 from ..envs import Task
-from ..models import PHYSICS_MODELS, ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
+from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
 from ..models.state_sources import broad_actions, broad_pairs, even_shares, parse_sources
 from ..physics import Physics
@@ -100,7 +100,7 @@ class DynaModel:
             else None
         )
         # a model with the physics inside steps the residual's scheme (and follows its learned coefficients)
-        inside = (residual or PhysicsResidual(self.physics, n_states, scheme)) if d.model in PHYSICS_MODELS else None
+        inside = (residual or PhysicsResidual(self.physics, n_states, scheme)) if d.model in PHYSICS_MODEL_KINDS else None
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(streams.integer_seed("model_init"))
             self.model = make_model(
