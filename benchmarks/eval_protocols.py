@@ -33,8 +33,12 @@ from pimbrl.training.rundir import kernel_note
 PROTOCOLS = ("test", "authors")
 
 
-def evaluate(run_dir: Path) -> dict:
-    """Method, seed, step and, per protocol, the return statistics and returns of one run's latest checkpoint."""
+def evaluate(run_dir: Path, threshold: float | None = None) -> dict:
+    """Method, seed, step, training summary and, per protocol, the return statistics of the latest checkpoint.
+
+    The training summary is the run's own record at ``threshold`` (its steps and training wall-clock to the
+    first evaluation at or above it, final and best mean test return, wall-clock, agent updates).
+    """
     run = load_run(run_dir)
     if not run.run_dir.checkpoint_path.exists():
         raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
@@ -44,6 +48,9 @@ def evaluate(run_dir: Path) -> dict:
         raise SystemExit(f"{run_dir}: {note}")
     label = run_dir.parent.name if run_dir.name.startswith("seed") else cfg.method
     row: dict = {"run_dir": str(run_dir), "label": label, "method": cfg.method, "seed": cfg.seed, "step": run.t}
+    trained = run.run_dir.result(threshold) or {}
+    keys = ("steps_to_threshold", "wall_s_to_threshold", "final_return", "best_return", "wall_s", "updates")
+    row["training"] = {key: trained.get(key) for key in keys}
     for protocol in PROTOCOLS:
         result = run.evaluator_for(protocol).run(lambda o: run.agent.act(o, deterministic=True))
         row[protocol] = {**result.summary(), **result.quartiles(), "returns": result.returns.tolist()}
@@ -77,7 +84,7 @@ def main() -> None:
     args = parser.parse_args()
     rows = []
     for run_dir in args.run_dirs:
-        row = evaluate(run_dir)
+        row = evaluate(run_dir, args.threshold)
         rows.append(row)
         parts = [
             f"{p} mean {row[p]['return_mean']:8.2f} (quartiles {row[p]['return_q25']:.1f}/{row[p]['return_median']:.1f}/"
@@ -85,6 +92,11 @@ def main() -> None:
             for p in PROTOCOLS
         ]
         print(f"{row['label']:>13s} seed {row['seed']} step {row['step']:>7,d}  " + "  ".join(parts), flush=True)
+        if args.threshold is not None:
+            t = row["training"]
+            wall = "—" if t["wall_s_to_threshold"] is None else f"{t['wall_s_to_threshold']:,.0f} s"
+            reached = "not reached" if t["steps_to_threshold"] is None else f"{t['steps_to_threshold']:,d} steps"
+            print(f"{'':>13s} training: {args.threshold:g} first at {reached} ({wall} of training wall-clock)")
     summary = by_label(rows, args.threshold)
     for label, entry in summary.items():
         parts = [f"{p} {entry[p]['return_mean']:.2f} [{entry[p]['range'][0]:.2f}, {entry[p]['range'][1]:.2f}]" for p in PROTOCOLS]

@@ -216,8 +216,7 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
                 if name == "data" and labelled is None:
                     model = None  # no labels, no physics: predict no change
                 elif name == "physics-only" or (name == "physics-only-learned" and labelled is None):
-                    scheme = PhysicsResidual(prior, PhysicsResidual.states_per_step(prior, cfg.n_intermediate), _scheme_of(cfg))
-                    model = make_model(prior, kind="physics", scheme=scheme)  # learns nothing
+                    model, _ = _scheme_model(cfg, prior)  # learns nothing
                 elif name == "physics-only-learned":
                     assert labelled is not None
                     model, found = _fit_scheme(cfg, prior, learned, labelled, seed)
@@ -275,13 +274,18 @@ def _scheme_of(cfg: ModelEvalConfig) -> Scheme:
     return "solver" if cfg.scheme == "solver" else "etd"
 
 
+def _scheme_model(cfg: ModelEvalConfig, prior: Physics, learned: dict | None = None) -> tuple[TransitionModel, PhysicsResidual]:
+    """The prior's coarse scheme as the model (physics-only), with ``learned`` coefficients free to fit if given."""
+    n = PhysicsResidual.states_per_step(prior, cfg.n_intermediate)
+    residual = PhysicsResidual(prior, n, _scheme_of(cfg), learned=learned or None)
+    return make_model(prior, n_intermediate=n, kind="physics", scheme=residual), residual
+
+
 def _fit_scheme(
     cfg: ModelEvalConfig, prior: Physics, learned: dict, labelled: TransitionData, seed: int
 ) -> tuple[TransitionModel, dict[str, float]]:
     """The prior's coarse scheme with ``learned`` coefficients fitted to the labels (``cfg.steps`` Adam steps)."""
-    n = PhysicsResidual.states_per_step(prior, cfg.n_intermediate)
-    residual = PhysicsResidual(prior, n, _scheme_of(cfg), learned=learned)
-    model = make_model(prior, n_intermediate=n, kind="physics", scheme=residual)
+    model, residual = _scheme_model(cfg, prior, learned)
     trainer = ModelTrainer(model, residual, coefficient_lr=cfg.coefficient_lr)
     trainer.fit(cfg.steps, cfg.batch_size, np.random.default_rng(seed + 1), labelled=labelled)
     assert residual.coefficients is not None
