@@ -36,8 +36,9 @@ PROTOCOLS = ("test", "authors")
 def evaluate(run_dir: Path, threshold: float | None = None) -> dict:
     """Method, seed, step, training summary and, per protocol, the return statistics of the latest checkpoint.
 
-    The training summary is the run's own record at ``threshold`` (its steps and training wall-clock to the
-    first evaluation at or above it, final and best mean test return, wall-clock, agent updates).
+    The training summary is the run's own record at ``threshold`` (``None``: the run's configured threshold):
+    its steps and training wall-clock to the first evaluation at or above it, final and best mean test
+    return, wall-clock and agent updates.
     """
     run = load_run(run_dir)
     if not run.run_dir.checkpoint_path.exists():
