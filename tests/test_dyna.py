@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
+import torch
 
 from pimbrl.cli import main
 from pimbrl.training import Run, RunDirectory, create_run, resolve_config, train
@@ -223,3 +225,33 @@ def test_step_ratio_counts_unfinished_runs_at_their_budget() -> None:
     ratio = step_ratio(pim, mfrl)
     assert ratio["value"] == pytest.approx(0.15) and ratio["note"].startswith("upper bound: 2 of 3")
     assert step_ratio(pim, pim)["value"] == 1.0 and step_ratio(mfrl, pim)["value"] is None
+
+
+@pytest.mark.parametrize("fraction", [0.0, 1.0])
+def test_reset_starts_imagine_episodes_from_the_training_pool(tmp_path, ks_small_pools, fraction: float) -> None:
+    """``dyna.reset_start_fraction`` 1: every imagined rollout starts at step 0 from a training-pool state
+    (never a test-pool one); 0: from the real buffer's states, which lie later in their episodes."""
+    from pimbrl.training.cli_args import config_from_argv
+
+    argv = ["ks", "--method", "mbrl", "--dyna.model", "physics", *_for_method(DYNA_SMOKE["ks"], "mbrl"), *TINY,
+            *SMALL_MODEL, "--dyna.reset-start-fraction", str(fraction)]  # fmt: skip
+    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    train(run)
+    model = run.model
+    assert model is not None and model.imagined_total > 0
+    n = len(model.imagined)
+    idx = torch.arange(n)
+    k = model.imagined.extra("k", idx).reshape(-1).long()
+    states = model.imagined.extra("state", idx).double().numpy()
+    train_pool, test_pool = (pool.states for pool in ks_small_pools)
+    first = states[(k == 0).numpy()]
+
+    def rows_of(pool: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        return np.array([np.abs(pool - x).max(axis=1).min() < 1e-5 for x in xs], dtype=bool)
+
+    if fraction == 1.0:
+        assert int(k.max()) < 3  # the rollout length of DYNA_SMOKE: nothing but fresh episodes
+        assert len(first) == n // 3 and len(first) % 16 == 0  # one start per rollout (16 per phase)
+        assert rows_of(train_pool, first).all() and not rows_of(test_pool, first).any()
+    else:
+        assert int(k.max()) >= 20  # starts at the real buffer's steps (collected from step 0 on, warm-up 20)

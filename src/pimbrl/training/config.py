@@ -98,6 +98,13 @@ class DynaConfig:
     imagined_start_fraction: float = param(
         0.0, "fraction of rollout start states drawn from the imagined buffer", in_range(0.0, 1.0)
     )
+    reset_start_fraction: float = param(
+        0.0,
+        "fraction of rollout start states drawn as the environment's resets draw them (its initial-state "
+        "distribution; KS: the training pool), at episode step 0: imagined episodes from starts the real "
+        "buffer may not hold (with imagined_start_fraction at most 1 in all)",
+        in_range(0.0, 1.0),
+    )
     real_ratio: float = param(0.5, "fraction of real transitions in agent batches while the model is in use", in_range(0.0, 1.0))
     holdout_fraction: float = param(
         0.1, "fraction of real transitions held out to measure the model's accuracy", in_range(0.0, 0.5, lo_open=True)
@@ -615,6 +622,11 @@ def check_model_kind(cfg: TrainConfig) -> None:
         )
     if d.model != "hybrid" and d.correction_scale != DynaConfig().correction_scale:
         raise ConfigError(f"--dyna.correction-scale sets the hybrid model's correction; give --dyna.model hybrid (now {d.model})")
+    if d.imagined_start_fraction + d.reset_start_fraction > 1.0:
+        raise ConfigError(
+            f"--dyna.imagined-start-fraction {d.imagined_start_fraction} and --dyna.reset-start-fraction "
+            f"{d.reset_start_fraction} add up to more than 1: they are shares of the same rollout starts; lower one"
+        )
 
 
 def physics_coefficient_names(env: str) -> tuple[str, ...]:

@@ -235,9 +235,14 @@ class DynaModel:
         d = self.cfg.dyna
         rng = self.streams.imagination
         n_img = round(n_rollouts * d.imagined_start_fraction) if len(self.imagined) else 0
-        starts = [real.sample_indices(n_rollouts - n_img, rng)]
+        n_reset = round(n_rollouts * d.reset_start_fraction)
+        starts = [real.sample_indices(n_rollouts - n_img - n_reset, rng)]
         states = [real.extra("state", starts[0])]
         ks = [real.extra("k", starts[0])]
+        if n_reset:
+            # imagined episodes from their first step, started as the environment's resets start them
+            states.append(torch.from_numpy(self.task.sample_initial_states(rng, n_reset)).to(states[0].dtype))
+            ks.append(torch.zeros((n_reset, *ks[0].shape[1:]), dtype=ks[0].dtype))
         if n_img:
             # continue only imagined rollouts that had not ended (no termination, time left)
             n = len(self.imagined)
