@@ -255,3 +255,19 @@ def test_reset_starts_imagine_episodes_from_the_training_pool(tmp_path, ks_small
         assert rows_of(train_pool, first).all() and not rows_of(test_pool, first).any()
     else:
         assert int(k.max()) >= 20  # starts at the real buffer's steps (collected from step 0 on, warm-up 20)
+
+
+def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) -> None:
+    """3 rollouts, half continued and half from resets: each share rounds to 2, yet 3 rollouts start."""
+    cfg = resolve_config(
+        "pimbrl/Pendulum-v0",
+        {"method": "mbrl", "total_steps": 300, "warmup_steps": 50, "update_after": 100, "eval_every": 300, "eval_episodes": 2},
+        {"hidden": (16, 16), "batch_size": 16},
+        {"model": "physics", "start_model_after": 100, "rollouts": 3, "rollout_length": 2, "threshold": 1e3,
+         "validation_size": 32, "imagined_start_fraction": 0.5, "reset_start_fraction": 0.5},
+    )  # fmt: skip
+    run = create_run(cfg, tmp_path / "run", progress=False)
+    train(run)
+    assert run.model is not None
+    k = run.model.imagined.extra("k", torch.arange(len(run.model.imagined))).reshape(-1)
+    assert run.model.imagined_total == len(k) > 0 and int((k == 0).sum()) > 0  # some episodes began at reset

@@ -235,7 +235,7 @@ class DynaModel:
         d = self.cfg.dyna
         rng = self.streams.imagination
         n_img = round(n_rollouts * d.imagined_start_fraction) if len(self.imagined) else 0
-        n_reset = round(n_rollouts * d.reset_start_fraction)
+        n_reset = min(round(n_rollouts * d.reset_start_fraction), n_rollouts - n_img)  # the shares' roundings fit
         starts = [real.sample_indices(n_rollouts - n_img - n_reset, rng)]
         states = [real.extra("state", starts[0])]
         ks = [real.extra("k", starts[0])]
