@@ -41,13 +41,20 @@ TINY_RUN = {"total_steps": 200, "warmup_steps": 100, "update_after": 100, "eval_
         (["pendulum", "--agent", "ddpg", "--agent.policy-delay", "3"], "--agent.policy-delay applies to the agent td3"),
         (["pendulum", "--agent", "sac", "--agent.target-noise", "0.1"], "--agent.target-noise applies to the agent td3"),
         (["pendulum", "--agent", "sac", "--agent.exploration-noise", "0.2"], "--agent.exploration-noise applies to the agents td3 and ddpg"),
-        (["pendulum", "--method", "mbrl", "--dyna.imagined-start-fraction", "0.6", "--dyna.reset-start-fraction", "0.5"],
-         "--dyna.imagined-start-fraction 0.6 and --dyna.reset-start-fraction 0.5 add up to more than 1"),
     ],
 )  # fmt: skip
 def test_a_flag_that_does_not_apply_is_an_error_that_says_why(argv, message, tmp_path, capsys) -> None:
     assert main(["train", *argv, "--run-dir", str(tmp_path / "r"), "--print-config"]) == 2
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+def test_rollout_start_shares_over_one_are_an_error_that_says_why(tmp_path, capsys) -> None:
+    argv = ["pendulum", "--method", "mbrl", "--dyna.imagined-start-fraction", "0.6", "--dyna.reset-start-fraction", "0.5"]
+    assert main(["train", *argv, "--run-dir", str(tmp_path / "r"), "--print-config"]) == 2
+    assert (
+        "--dyna.imagined-start-fraction 0.6 and --dyna.reset-start-fraction 0.5 add up to more than 1" in capsys.readouterr().err
+    )
     assert not (tmp_path / "r").exists()
 
 

@@ -610,6 +610,7 @@ def _check_runnable(cfg: TrainConfig) -> None:
     if cfg.method in MODEL_BASED:
         check_coefficients(cfg)
         check_model_kind(cfg)
+        check_rollout_starts(cfg)
 
 
 def check_model_kind(cfg: TrainConfig) -> None:
@@ -622,6 +623,11 @@ def check_model_kind(cfg: TrainConfig) -> None:
         )
     if d.model != "hybrid" and d.correction_scale != DynaConfig().correction_scale:
         raise ConfigError(f"--dyna.correction-scale sets the hybrid model's correction; give --dyna.model hybrid (now {d.model})")
+
+
+def check_rollout_starts(cfg: TrainConfig) -> None:
+    """A clear :class:`ConfigError` when the shares of the imagined rollouts' start states exceed the whole."""
+    d = cfg.dyna
     if d.imagined_start_fraction + d.reset_start_fraction > 1.0:
         raise ConfigError(
             f"--dyna.imagined-start-fraction {d.imagined_start_fraction} and --dyna.reset-start-fraction "
