@@ -194,6 +194,21 @@ def test_shipped_sweep_files_still_load(tmp_path) -> None:
                 assert replace_path(trial.config, key, value) == trial.config
 
 
+def test_ks_hour_sweep_runs_the_documented_command(tmp_path) -> None:
+    """benchmarks/sweeps/ks_scheme_hour.json plans exactly the `pimbrl train` runs docs/results.md gives."""
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "sweeps" / "ks_scheme_hour.json"
+    trials = plan_trials(load_sweep(path), tmp_path)
+    assert sorted((t.seed, dict(t.params)["dyna.rollout_length"]) for t in trials) == [
+        (s, lm) for s in range(4) for lm in (25, 50)
+    ]
+    for trial in trials:
+        lm = dict(trial.params)["dyna.rollout_length"]
+        argv = "ks --method mbrl --dyna.model physics --total-steps 60000 --utd 10 --warmup-steps 1000"
+        argv += " --update-after 1000 --dyna.start-model-after 1000 --eval-every 2500 --dyna.finetune-return none"
+        argv += f" --dyna.rollout-length {lm} --agent.gamma 0.99 --threads 1 --seed {trial.seed}"
+        assert trial.config == config_from_argv(argv.split())
+
+
 # ---------------------------------------------------------------------------------- compare
 def test_compare_applies_overrides_to_the_runs_they_fit(tmp_path) -> None:
     specs = plan_runs(PENDULUM, ["mfrl", "pimbrl", "mfrl-matched"], [0], tmp_path, {"dyna.model_steps": 5})
