@@ -13,10 +13,14 @@ import platform  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import TYPE_CHECKING  # noqa: E402
 
 import torch  # noqa: E402
 
 torch.set_num_threads(1)
+
+if TYPE_CHECKING:
+    from pimbrl.training import Run
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -61,3 +65,13 @@ def record(name: str, payload: dict) -> Path:
     tmp.write_text(json.dumps(payload, indent=2))
     os.replace(tmp, path)
     return path
+
+
+def load_checkpointed_run(run_dir: Path) -> Run:
+    """The run in ``run_dir`` at its latest checkpoint, only read; exits with a message if it has none yet."""
+    from pimbrl.training import load_run
+
+    run = load_run(run_dir)
+    if not run.run_dir.checkpoint_path.exists():
+        raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
+    return run

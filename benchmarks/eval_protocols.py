@@ -27,7 +27,6 @@ from pathlib import Path
 
 import _common
 
-from pimbrl.training import load_run
 from pimbrl.training.rundir import kernel_note
 
 PROTOCOLS = ("test", "authors")
@@ -40,9 +39,7 @@ def evaluate(run_dir: Path, threshold: float | None = None) -> dict:
     its steps and training wall-clock to the first evaluation at or above it, final and best mean test
     return, wall-clock and agent updates.
     """
-    run = load_run(run_dir)
-    if not run.run_dir.checkpoint_path.exists():
-        raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
+    run = _common.load_checkpointed_run(run_dir)
     cfg = run.cfg
     note = kernel_note(run.run_dir.read_config().get("versions", {}))
     if note:  # the 'authors' rows would not all be states the agent trained on

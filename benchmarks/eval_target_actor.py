@@ -19,14 +19,10 @@ import _common
 import numpy as np
 import torch
 
-from pimbrl.training import load_run
-
 
 def evaluate(run_dir: Path) -> dict:
     """Step and mean test return of the actor and of the target actor of the run's latest checkpoint."""
-    run = load_run(run_dir)
-    if not run.run_dir.checkpoint_path.exists():
-        raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
+    run = _common.load_checkpointed_run(run_dir)
     agent = run.agent
     target = getattr(agent, "actor_targ", None)
     if target is None:
