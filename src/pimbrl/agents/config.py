@@ -28,6 +28,11 @@ class AgentConfig:
             f"must be 1 to {MAX_LAYERS} layer sizes, each in [1, {MAX_WIDTH:,}]",
         ),
     )
+    critic_layer_norm: bool = param(
+        False,
+        "layer-normalise every hidden layer of the critics (no gain or bias) before its ReLU; steadies high "
+        "update-to-data ratios (off: the paper's)",
+    )
     actor_lr: float = param(1e-3, "actor learning rate (Adam)", [positive(), at_most(MAX_LR)])
     critic_lr: float = param(1e-3, "critic learning rate (Adam)", [positive(), at_most(MAX_LR)])
     gamma: float = param(0.99, "discount factor", in_range(0.0, 1.0, lo_open=True))

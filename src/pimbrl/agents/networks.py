@@ -2,7 +2,9 @@
 
 The twin (or single) critics are one :class:`CriticEnsemble`: the weights of all members are stacked
 and every layer is one batched matrix product (``torch.baddbmm``), so evaluating two critics costs one
-kernel launch per layer instead of two.
+kernel launch per layer instead of two. Optionally every hidden layer of the critics is layer-normalised
+before its ReLU (Ba et al. 2016, no learned gain or bias: the next layer's weights can rescale), which
+keeps Q-values bounded when the critic takes many gradient steps per real step (Ball et al. 2023, RLPD).
 """
 
 from __future__ import annotations
@@ -81,11 +83,13 @@ class CriticEnsemble(nn.Module):
     """``n`` independent Q-networks ``Q_i(s, a)`` evaluated together; ``forward`` returns ``(n, B)``.
 
     Each layer is initialised like ``nn.Linear`` (uniform in ``+-1/sqrt(fan_in)``), independently per member.
+    With ``layer_norm`` every hidden pre-activation is normalised over its units (zero mean, unit variance).
     """
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], n: int = 2) -> None:
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], n: int = 2, layer_norm: bool = False) -> None:
         super().__init__()
         self.n = n
+        self.layer_norm = layer_norm
         sizes = [obs_dim + act_dim, *hidden, 1]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -101,7 +105,7 @@ class CriticEnsemble(nn.Module):
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             x = torch.baddbmm(b, x, w)
             if i < last:
-                x = torch.relu(x)
+                x = torch.relu(self._normalise(x))
         return x.squeeze(-1)
 
     def first(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -111,5 +115,9 @@ class CriticEnsemble(nn.Module):
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             x = torch.addmm(b[0], x, w[0])
             if i < last:
-                x = torch.relu(x)
+                x = torch.relu(self._normalise(x))
         return x.squeeze(-1)
+
+    def _normalise(self, x: torch.Tensor) -> torch.Tensor:
+        """Layer normalisation over the last (units) axis if enabled, else ``x`` unchanged."""
+        return nn.functional.layer_norm(x, x.shape[-1:]) if self.layer_norm else x

@@ -23,7 +23,7 @@ class SAC(Agent):
     def _build(self) -> None:
         cfg = self.config
         self.actor = GaussianActor(self.obs_dim, self.act_dim, cfg.hidden)
-        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=2)
+        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=2, layer_norm=cfg.critic_layer_norm)
         self.critic_targ = target_copy(self.critic)
         self.actor_opt = make_optimizer(self.actor.parameters(), cfg.actor_lr)
         self.critic_opt = make_optimizer(self.critic.parameters(), cfg.critic_lr)

@@ -30,7 +30,7 @@ class TD3(Agent):
     def _build(self) -> None:
         cfg = self.config
         self.actor = DeterministicActor(self.obs_dim, self.act_dim, cfg.hidden)
-        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=self.n_critics)
+        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=self.n_critics, layer_norm=cfg.critic_layer_norm)
         self.actor_targ = target_copy(self.actor)
         self.critic_targ = target_copy(self.critic)
         self.actor_opt = make_optimizer(self.actor.parameters(), cfg.actor_lr)
