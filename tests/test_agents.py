@@ -8,6 +8,7 @@ import torch
 from gymnasium import spaces
 
 from pimbrl.agents import AgentConfig, make_agent
+from pimbrl.agents.networks import CriticEnsemble
 from pimbrl.buffers import Batch, ReplayBuffer
 from pimbrl.spaces import ActionAdapter
 from pimbrl.training import create_run, resolve_config, train
@@ -40,14 +41,30 @@ def _train_toy(tmp_path, agent: str, env: str = "toy/Reach-v0", steps: int = 300
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("agent", ["td3", "ddpg", "sac"])
+@pytest.mark.parametrize("agent", ["td3", "ddpg", "sac", "td3-layer-norm"])
 def test_agent_learns_the_toy_task(tmp_path, agent: str) -> None:
-    summary, trainer = _train_toy(tmp_path, agent, steps=2000)
+    name, _, norm = agent.partition("-")
+    over = {"agent.critic_layer_norm": True} if norm else {}
+    summary, trainer = _train_toy(tmp_path, name, steps=2000, **over)
     rng = np.random.default_rng(0)
     random_return = trainer.evaluator.run(lambda o: rng.uniform(-1, 1, (len(o), 2))).mean
     # a random policy returns about -5 on this task; a learned one reaches the origin quickly
     assert random_return < -3.0
     assert summary.best_return_mean is not None and summary.best_return_mean > -1.0, trainer.run_dir.evaluations.read()
+
+
+def test_critic_layer_norm_makes_q_invariant_to_the_scale_of_a_hidden_layer() -> None:
+    torch.manual_seed(0)
+    obs, act = torch.randn(32, 5), torch.rand(32, 2) * 2 - 1
+    for layer_norm in (True, False):
+        critic = CriticEnsemble(5, 2, (16, 16), n=2, layer_norm=layer_norm)
+        q = critic(obs, act)
+        assert torch.allclose(critic.first(obs, act), q[0], atol=1e-6)
+        with torch.no_grad():  # scale the first layer's pre-activations by 7: layer norm removes the scale
+            critic.weights[0].mul_(7.0)
+            critic.biases[0].mul_(7.0)
+        moved = (critic(obs, act) - q).abs().max().item()
+        assert (moved < 1e-4) if layer_norm else (moved > 1e-2), (layer_norm, moved)
 
 
 def test_td3_drives_discrete_cartpole_style_actions(tmp_path) -> None:
