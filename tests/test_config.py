@@ -194,18 +194,22 @@ def test_shipped_sweep_files_still_load(tmp_path) -> None:
                 assert replace_path(trial.config, key, value) == trial.config
 
 
-def test_ks_hour_sweep_runs_the_documented_command(tmp_path) -> None:
-    """benchmarks/sweeps/ks_scheme_hour.json plans exactly the `pimbrl train` runs docs/results.md gives."""
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "sweeps" / "ks_scheme_hour.json"
+@pytest.mark.parametrize(
+    ("name", "key", "values", "flags"),
+    [
+        ("ks_scheme_hour", "dyna.rollout_length", (25, 50), "--dyna.rollout-length {v}"),
+        ("ks_scheme_hour_reset", "dyna.reset_start_fraction", (0.5,), "--dyna.rollout-length 25 --dyna.reset-start-fraction {v}"),
+    ],
+)
+def test_ks_hour_sweeps_run_the_documented_commands(tmp_path, name: str, key: str, values: tuple, flags: str) -> None:
+    """The KS hour sweep files plan exactly the `pimbrl train` runs docs/results.md gives."""
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "sweeps" / f"{name}.json"
     trials = plan_trials(load_sweep(path), tmp_path)
-    assert sorted((t.seed, dict(t.params)["dyna.rollout_length"]) for t in trials) == [
-        (s, lm) for s in range(4) for lm in (25, 50)
-    ]
+    assert sorted((t.seed, dict(t.params)[key]) for t in trials) == [(s, v) for s in range(4) for v in values]
     for trial in trials:
-        lm = dict(trial.params)["dyna.rollout_length"]
         argv = "ks --method mbrl --dyna.model physics --total-steps 60000 --utd 10 --warmup-steps 1000"
         argv += " --update-after 1000 --dyna.start-model-after 1000 --eval-every 2500 --dyna.finetune-return none"
-        argv += f" --dyna.rollout-length {lm} --agent.gamma 0.99 --threads 1 --seed {trial.seed}"
+        argv += " " + flags.format(v=dict(trial.params)[key]) + f" --agent.gamma 0.99 --threads 1 --seed {trial.seed}"
         assert trial.config == config_from_argv(argv.split())
 
 
