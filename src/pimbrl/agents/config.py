@@ -30,8 +30,8 @@ class AgentConfig:
     )
     critic_layer_norm: bool = param(
         False,
-        "layer-normalise every hidden layer of the critics (no gain or bias) before its ReLU; steadies high "
-        "update-to-data ratios (off: the paper's)",
+        "layer-normalise every hidden layer of the critics (no gain or bias) before its ReLU, as RLPD does for "
+        "high update-to-data ratios (off: the paper's; on KS it learned slower, docs/results.md)",
     )
     actor_lr: float = param(1e-3, "actor learning rate (Adam)", [positive(), at_most(MAX_LR)])
     critic_lr: float = param(1e-3, "critic learning rate (Adam)", [positive(), at_most(MAX_LR)])
