@@ -1,7 +1,8 @@
 """Where a training run's wall-clock goes, phase by phase, from the timings every run logs.
 
 Every run's ``metrics.csv`` carries the cumulative seconds of each phase of the loop (``time/<phase>_s``:
-env_step, model_train, model_check, imagine, agent_update, evaluate, checkpoint); this prints, per run
+env_step, model_train, model_check, imagine, agent_update, evaluate, select, checkpoint; a phase a run
+did not log is left out); this prints, per run
 directory, each phase's seconds and share of the total, the seconds per 1,000 real steps and the
 milliseconds per agent update, and the mean over the runs given. The remainder (``other``) is the loop's
 own bookkeeping: logging, batch assembly outside the timed phases.
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import _common
 
-PHASES = ("env_step", "model_train", "model_check", "imagine", "agent_update", "evaluate", "checkpoint")
+from pimbrl.training import PHASES
 
 
 def profile(run_dir: Path) -> dict:

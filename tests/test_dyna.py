@@ -143,7 +143,7 @@ RESUME_DYNA = [
     "cartpole", "--method", "pimbrl", "--steps", "800", "--warmup-steps", "100", "--update-after", "100",
     "--eval-every", "200", "--eval-episodes", "4", "--checkpoint-every", "100", "--log-every", "100",
     "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
-    "--dyna.threshold", "1e3", "--dyna.rollout-length", "30", *TINY, *SMALL_MODEL,
+    "--dyna.threshold", "1e3", "--dyna.rollout-length", "30", "--dyna.select-episodes", "3", *TINY, *SMALL_MODEL,
 ]  # fmt: skip
 
 
@@ -159,8 +159,9 @@ def test_kill_and_resume_in_the_middle_of_the_model_based_phase(tmp_path) -> Non
     kill_when(RESUME_DYNA, killed, ready)
     assert main(["resume", str(killed), "--quiet"]) == 0
     drop = ("wall_s", "steps_per_s")
-    for name in ("evaluations.csv", "episodes.csv", "metrics.csv"):
+    for name in ("evaluations.csv", "episodes.csv", "metrics.csv", "selection.csv"):
         assert _table(ref, name, drop) == _table(killed, name, drop), name
+    assert len(_table(ref, "selection.csv", drop)) == 4  # one row per evaluation, kept through the kill
 
 
 @pytest.mark.slow

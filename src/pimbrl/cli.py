@@ -256,11 +256,21 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
     _print_kernel_note(run)
     cfg = run.cfg
+    label = f"step {run.t:,d}"
+    if args.policy == "selected":
+        selector = None if run.model is None else run.model.selector
+        if selector is None or selector.best_policy is None:
+            raise ValueError(
+                f"{args.run_dir} has no selected policy: it was trained without model-based policy selection "
+                "(train with --dyna.select-episodes N, or evaluate --policy latest)"
+            )
+        run.agent.load_policy_state(selector.best_policy)
+        label = f"selected at step {selector.best_step:,d} of {run.t:,d}"
     evaluator = run.evaluator_for(args.protocol, args.episodes or None)
     result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     s = {**result.summary(), **result.quartiles()}
     print(
-        f"{args.run_dir} (step {run.t:,d}, {evaluator.episodes} {args.protocol}-protocol episodes): return mean "
+        f"{args.run_dir} ({label}, {evaluator.episodes} {args.protocol}-protocol episodes): return mean "
         f"{s['return_mean']:.3f}, quartiles {s['return_q25']:.3f} / {s['return_median']:.3f} / {s['return_q75']:.3f}, "
         f"min {s['return_min']:.3f}, max {s['return_max']:.3f}, std {s['return_std']:.3f}"
     )
@@ -269,7 +279,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         reached = steps_to_threshold(rows, cfg.threshold)
         print(f"steps to threshold {cfg.threshold:g}: {'not reached' if reached is None else f'{reached:,d}'}")
     if args.json:
-        payload = {"step": run.t, "protocol": args.protocol, **s, "returns": result.returns.tolist()}
+        payload = {"step": run.t, "policy": args.policy, "protocol": args.protocol, **s, "returns": result.returns.tolist()}
         print(json.dumps({**payload, "config": dataclasses.asdict(cfg)}, default=str))
     return 0
 
@@ -506,6 +516,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="test",
         help="initial states: the run's held-out test states (default), or KS 'authors': the 5 training-pool rows "
         "0, 49, 99, 149, 199 on which the paper reports its mean return",
+    )
+    ev.add_argument(
+        "--policy",
+        choices=("latest", "selected"),
+        default="latest",
+        help="the checkpoint's latest policy (default), or the one model-based policy selection kept "
+        "(runs trained with --dyna.select-episodes)",
     )
     ev.add_argument("--json", action="store_true", help="also print a JSON line")
     ev.set_defaults(func=_cmd_eval)

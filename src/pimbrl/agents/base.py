@@ -116,6 +116,14 @@ class Agent(ABC):
             }
         )
 
+    def policy_state(self) -> dict[str, Any]:
+        """A copy of the actor's weights: what :meth:`act` needs, without critics, targets or optimisers."""
+        return copy.deepcopy(self._modules()["actor"].state_dict())
+
+    def load_policy_state(self, state: dict[str, Any]) -> None:
+        """Load actor weights saved by :meth:`policy_state` (the critics and targets are left as they are)."""
+        self._modules()["actor"].load_state_dict(state)
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`state_dict` saved; the checkpoint must be of the same agent type."""
         if state["name"] != self.name:

@@ -105,6 +105,13 @@ class DynaConfig:
         "buffer may not hold (with imagined_start_fraction at most 1 in all)",
         in_range(0.0, 1.0),
     )
+    select_episodes: int = param(
+        0,
+        "policy selection in the model: at every evaluation, run the deterministic policy for this many whole "
+        "episodes in the model from training initial states and keep the policy with the best imagined return "
+        "(selection.csv; `pimbrl eval --policy selected`; 0: off)",
+        [non_negative(), at_most(10_000)],
+    )
     real_ratio: float = param(0.5, "fraction of real transitions in agent batches while the model is in use", in_range(0.0, 1.0))
     holdout_fraction: float = param(
         0.1, "fraction of real transitions held out to measure the model's accuracy", in_range(0.0, 0.5, lo_open=True)

@@ -43,12 +43,13 @@ from ..models.state_sources import broad_actions, broad_pairs, even_shares, pars
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from .config import TrainConfig
+from .selection import PolicySelector
 from .streams import RandomStreams
 
 __all__ = ["PHASES", "BufferView", "DynaModel", "UnlabelledPairs", "agent_batch"]
 
 #: Timed phases of a run (``time/<phase>_s`` in ``metrics.csv``; the model ones stay 0 for MFRL).
-PHASES = ("env_step", "model_train", "model_check", "imagine", "agent_update", "evaluate", "checkpoint")
+PHASES = ("env_step", "model_train", "model_check", "imagine", "agent_update", "evaluate", "select", "checkpoint")
 
 
 def agent_batch(
@@ -123,6 +124,14 @@ class DynaModel:
         self.baseline_mse = float("inf")  # the no-change prediction's error on the same held-out transitions
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
+        #: model-based policy selection (``dyna.select_episodes``), None when off
+        self.selector = (
+            PolicySelector(
+                self.model, task, adapter, self.physics, d.select_episodes, cfg.eval_seed, use_path=d.reward_quadrature == "path"
+            )
+            if d.select_episodes
+            else None
+        )
 
     # ------------------------------------------------------------------ real transitions
     def holdout_flag(self) -> float:
@@ -329,6 +338,7 @@ class DynaModel:
             "metrics": dict(self.metrics),
             "imagined_total": self.imagined_total,
             "coefficient_history": list(self.coefficient_history),
+            "selection": None if self.selector is None else self.selector.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -342,6 +352,8 @@ class DynaModel:
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
         self.coefficient_history = list(state.get("coefficient_history", []))
+        if self.selector is not None and state.get("selection") is not None:
+            self.selector.load_state_dict(state["selection"])
         if self.coefficient_history:  # imagined steps at the restored values; the prior until the first fit
             self._follow_learned_coefficients()
 

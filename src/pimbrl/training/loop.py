@@ -72,6 +72,9 @@ class RunSummary:
     best_return_mean: float | None
     steps_to_threshold: int | None
     wall_s: float
+    #: model-based policy selection (``dyna.select_episodes``): the step of the policy kept, and its test return
+    selected_step: int | None = None
+    selected_return_mean: float | None = None
 
 
 class UpdateSchedule:
@@ -186,6 +189,7 @@ class Run:
         """What the run has reached, from its evaluations."""
         rows = self.run_dir.evaluations.read()
         returns = [float(r["return_mean"]) for r in rows]
+        selector = None if self.model is None else self.model.selector
         return RunSummary(
             steps=self.t,
             updates=self.agent.n_updates,
@@ -193,6 +197,8 @@ class Run:
             best_return_mean=max(returns) if returns else None,
             steps_to_threshold=steps_to_threshold(rows, self.cfg.threshold),
             wall_s=self.logger.wall_s,
+            selected_step=None if selector is None else selector.best_step,
+            selected_return_mean=None if selector is None else selector.best_test_return,
         )
 
     def counters(self) -> dict[str, Any]:
@@ -285,9 +291,14 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
 
 
 def _evaluate(run: Run) -> None:
+    """The deterministic policy on the test states; with policy selection on, also whole episodes in the model."""
     with run.logger.timed("evaluate"):
         result = run.evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     run.logger.evaluation(run.t, result, run.agent.n_updates)
+    selector = None if run.model is None else run.model.selector
+    if selector is not None:
+        with run.logger.timed("select"):
+            run.run_dir.selection.append(selector.observe(run.t, run.agent, result.mean))
 
 
 def _finish(run: Run) -> RunSummary:

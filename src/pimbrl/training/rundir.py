@@ -8,6 +8,7 @@ Layout of a run directory::
     metrics.csv          training metrics every ``log_every`` steps (losses, update-to-data ratio, speed)
     episodes.csv         one row per training episode
     checkpoints/latest.pt  the full training state (written atomically, with a checksum)
+    selection.csv        model-based policy selection, one row per evaluation (``dyna.select_episodes``)
     tb/                  TensorBoard events (optional)
 
 Every file is written so that a process killed at any moment (``kill -9``) leaves a consistent directory:
@@ -291,6 +292,16 @@ class RunDirectory:
         "wall_s",
     ]
     EPISODE_COLUMNS: ClassVar[list[str]] = ["step", "episode", "return", "length"]
+    #: model-based policy selection (:mod:`pimbrl.training.selection`), one row per evaluation
+    SELECTION_COLUMNS: ClassVar[list[str]] = [
+        "step",
+        "model_return_mean",
+        "model_return_min",
+        "blown_up",
+        "return_mean",
+        "selected_step",
+        "selected_return_mean",
+    ]
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
@@ -298,6 +309,7 @@ class RunDirectory:
         self.checkpoint_path = self.path / "checkpoints" / "latest.pt"
         self.evaluations = CsvLog(self.path / "evaluations.csv", self.EVAL_COLUMNS)
         self.episodes = CsvLog(self.path / "episodes.csv", self.EPISODE_COLUMNS)
+        self.selection = CsvLog(self.path / "selection.csv", self.SELECTION_COLUMNS)
         self._metrics: CsvLog | None = None
         self._lock_fd: int | None = None
 
@@ -459,7 +471,7 @@ class RunDirectory:
 
     def truncate_logs(self, step: int) -> None:
         """Drop the rows of every log after ``step`` (used when resuming from a checkpoint)."""
-        for log in (self.evaluations, self.episodes):
+        for log in (self.evaluations, self.episodes, self.selection):
             log.truncate_after(step)
         path = self.path / "metrics.csv"
         if path.exists():
@@ -467,7 +479,7 @@ class RunDirectory:
 
     def close(self) -> None:
         """Close the open log files and release the lock (if held)."""
-        for log in (self.evaluations, self.episodes, self._metrics):
+        for log in (self.evaluations, self.episodes, self.selection, self._metrics):
             if log is not None:
                 log.close()
         self.unlock()

@@ -1,0 +1,108 @@
+"""Model-based policy selection (``dyna.select_episodes``): judged in the model, trains nothing differently."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pimbrl.cli import main
+from pimbrl.training import RunDirectory, create_run, resolve_config, train
+from pimbrl.training.selection import PolicySelector
+
+from .test_training import _table
+
+PENDULUM = {"method": "mbrl", "total_steps": 600, "warmup_steps": 100, "update_after": 100, "eval_every": 100, "eval_episodes": 3}
+SMALL_AGENT = {"hidden": (16, 16), "batch_size": 16}
+DYNA = {"model": "physics", "start_model_after": 100, "rollouts": 4, "rollout_length": 5, "threshold": 1e3, "validation_size": 32}
+
+
+def _run(tmp_path, name: str, select: int):
+    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": select})
+    run = create_run(cfg, tmp_path / name, progress=False)
+    return run, train(run)
+
+
+def test_selection_keeps_the_best_imagined_policy_and_trains_as_without_it(tmp_path) -> None:
+    plain, _ = _run(tmp_path, "plain", 0)
+    run, summary = _run(tmp_path, "select", 8)
+    drop = ("wall_s", "steps_per_s")
+    # the judge draws from none of the run's streams and changes no weight: the same run, bit for bit
+    assert _table(plain.run_dir.path, "evaluations.csv", drop) == _table(run.run_dir.path, "evaluations.csv", drop)
+    for name, p in plain.agent.actor.state_dict().items():
+        assert torch.equal(p, run.agent.actor.state_dict()[name]), name
+    assert not (plain.run_dir.path / "selection.csv").exists()
+    rows = run.run_dir.selection.read()
+    evals = run.run_dir.evaluations.read()
+    assert [r["step"] for r in rows] == [e["step"] for e in evals] and len(rows) == 6
+    assert [r["return_mean"] for r in rows] == [e["return_mean"] for e in evals]
+    imagined = [float(r["model_return_mean"]) for r in rows]
+    best = int(np.argmax(imagined))  # the first of equal maxima, as the selector keeps the earlier policy
+    assert summary.selected_step == int(rows[best]["step"]) == int(rows[-1]["selected_step"])
+    assert summary.selected_return_mean == pytest.approx(float(evals[best]["return_mean"]))
+    # each row names the best policy up to that step
+    for i, r in enumerate(rows):
+        assert int(r["selected_step"]) == int(rows[int(np.argmax(imagined[: i + 1]))]["step"])
+    written = json.loads((run.run_dir.path / "config.json").read_text())["summary"]
+    assert written["selected_step"] == summary.selected_step
+    assert plain.summary().selected_step is None
+
+
+def test_imagined_episodes_of_the_physics_model_are_the_real_episodes(tmp_path) -> None:
+    """With the equation in the model, an imagined episode is the simulator's episode (single precision)."""
+    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 5})
+    run = create_run(cfg, tmp_path / "run", progress=False)
+    assert run.model is not None and run.model.selector is not None
+    selector, task, agent = run.model.selector, run.task, run.agent
+    imagined = selector.evaluate(agent)
+    u = selector.states.copy()
+    returns = np.zeros(len(u))
+    for k in range(task.max_episode_steps):
+        kk = np.full(len(u), k)
+        action = agent.act(task.observe(u, kk), deterministic=True)
+        out = task.advance(u, task.physical_action(run.adapter.to_env(action), len(u)), kk)
+        returns += out.reward
+        u = out.state
+    assert imagined.blown_up == 0 and len(imagined.returns) == 5
+    np.testing.assert_allclose(imagined.returns, returns, rtol=1e-3)
+    # the start states are training initial states, fixed by the evaluation seed
+    again = PolicySelector(run.model.model, task, run.adapter, run.model.physics, 5, cfg.eval_seed)
+    np.testing.assert_array_equal(again.states, selector.states)
+
+
+class _Exploding(torch.nn.Module):
+    """A model whose every prediction is non-finite."""
+
+    def forward(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return torch.full((len(state), 1, state.shape[-1]), float("nan"))
+
+
+def test_a_blown_up_imagined_episode_ends_with_the_divergence_penalty(tmp_path) -> None:
+    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 4})
+    run = create_run(cfg, tmp_path / "run", progress=False)
+    selector = PolicySelector(_Exploding(), run.task, run.adapter, run.physics, 4, 0)  # type: ignore[arg-type]
+    result = selector.evaluate(run.agent)
+    assert result.blown_up == 4
+    np.testing.assert_array_equal(result.returns, np.full(4, run.task.divergence_penalty))
+
+
+def test_eval_of_the_selected_policy(tmp_path, capsys) -> None:
+    run, summary = _run(tmp_path, "select", 8)
+    path = str(run.run_dir.path)
+    assert main(["eval", path, "--policy", "selected", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert f"selected at step {summary.selected_step:,d} of 600" in out
+    payload = json.loads(out.strip().splitlines()[-1])
+    # the selected policy, re-evaluated on the run's test states, scores what it scored when it was kept
+    assert payload["policy"] == "selected" and payload["return_mean"] == pytest.approx(summary.selected_return_mean)
+    plain, _ = _run(tmp_path, "plain", 0)
+    assert main(["eval", str(plain.run_dir.path), "--policy", "selected"]) != 0
+    assert "trained without model-based policy selection" in capsys.readouterr().err
+    assert RunDirectory(plain.run_dir.path).selection.read() == []
+
+
+def test_selection_is_refused_for_mfrl(capsys) -> None:
+    assert main(["train", "pendulum", "--method", "mfrl", "--dyna.select-episodes", "10", "--print-config"]) != 0
+    assert "--dyna.select-episodes applies to the model-based methods" in capsys.readouterr().err
