@@ -71,7 +71,7 @@ def load_checkpointed_run(run_dir: Path) -> Run:
     """The run in ``run_dir`` at its latest checkpoint, only read; exits with a message if it has none yet."""
     from pimbrl.training import load_run
 
-    run = load_run(run_dir)
-    if not run.run_dir.checkpoint_path.exists():
-        raise SystemExit(f"{run_dir} has no checkpoint yet: nothing to evaluate")
-    return run
+    try:
+        return load_run(run_dir, require_checkpoint=True)
+    except FileNotFoundError as exc:
+        raise SystemExit(str(exc)) from None

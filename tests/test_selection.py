@@ -106,3 +106,15 @@ def test_eval_of_the_selected_policy(tmp_path, capsys) -> None:
 def test_selection_is_refused_for_mfrl(capsys) -> None:
     assert main(["train", "pendulum", "--method", "mfrl", "--dyna.select-episodes", "10", "--print-config"]) != 0
     assert "--dyna.select-episodes applies to the model-based methods" in capsys.readouterr().err
+
+
+def test_evaluating_a_run_without_a_checkpoint_says_so(tmp_path, capsys) -> None:
+    """``pimbrl eval``, the figures and the benchmarks share one check and one message."""
+    from pimbrl.experiments.figures import load_run
+
+    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), dict(DYNA))
+    create_run(cfg, tmp_path / "new", progress=False).run_dir.close()  # config.json, no checkpoint
+    assert main(["eval", str(tmp_path / "new")]) != 0
+    assert "has no checkpoint yet: nothing to evaluate (train or resume it first)" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="has no checkpoint yet"):
+        load_run(tmp_path / "new")

@@ -251,9 +251,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
     from .training import load_run, steps_to_threshold
 
-    run = load_run(args.run_dir)
-    if not run.run_dir.checkpoint_path.exists():
-        raise FileNotFoundError(f"{args.run_dir} has no checkpoint yet: nothing to evaluate")
+    run = load_run(args.run_dir, require_checkpoint=True)
     _print_kernel_note(run)
     cfg = run.cfg
     label = f"step {run.t:,d}"

@@ -39,10 +39,7 @@ _FIGURE_ENVS = {
 
 def load_run(run_dir: str | Path) -> Run:
     """A run at its latest checkpoint (agent, model, config, environments); no file is changed."""
-    run = training.load_run(run_dir)
-    if not run.run_dir.checkpoint_path.exists():
-        raise FileNotFoundError(f"{run_dir} has no checkpoint: train it first")
-    return run
+    return training.load_run(run_dir, require_checkpoint=True)
 
 
 def check_fits(kind: str, run_dir: str | Path) -> None:

@@ -53,6 +53,13 @@ def extend_run(path: str | Path, total_steps: int) -> None:
         run_dir.unlock()
 
 
-def load_run(path: str | Path) -> Run:
-    """The run in ``path`` at its last checkpoint, for evaluation and figures; no file is changed."""
-    return open_run(path, progress=False, inspect_only=True)
+def load_run(path: str | Path, *, require_checkpoint: bool = False) -> Run:
+    """The run in ``path`` at its last checkpoint, for evaluation and figures; no file is changed.
+
+    A run with no checkpoint yet opens at step 0 (its untrained agent), or, with ``require_checkpoint``,
+    raises ``FileNotFoundError`` saying there is nothing to evaluate yet.
+    """
+    run = open_run(path, progress=False, inspect_only=True)
+    if require_checkpoint and not run.run_dir.checkpoint_path.exists():
+        raise FileNotFoundError(f"{path} has no checkpoint yet: nothing to evaluate (train or resume it first)")
+    return run
