@@ -1,5 +1,8 @@
 """Evaluate the latest checkpoint of finished runs on two protocols: held-out test states and the authors' 5.
 
+With ``--policy selected`` the policy evaluated is the one model-based policy selection kept
+(``--dyna.select-episodes``; :mod:`pimbrl.training.selection`) instead of the checkpoint's latest.
+
 For each run directory given (e.g. every ``<method>/seed<k>`` of a ``pimbrl compare`` directory), the
 deterministic policy of its latest checkpoint is run
 
@@ -32,12 +35,13 @@ from pimbrl.training.rundir import kernel_note
 PROTOCOLS = ("test", "authors")
 
 
-def evaluate(run_dir: Path, threshold: float | None = None) -> dict:
+def evaluate(run_dir: Path, threshold: float | None = None, policy: str = "latest") -> dict:
     """Method, seed, step, training summary and, per protocol, the return statistics of the latest checkpoint.
 
-    The training summary is the run's own record at ``threshold`` (``None``: the run's configured threshold):
-    its steps and training wall-clock to the first evaluation at or above it, final and best mean test
-    return, wall-clock and agent updates.
+    ``policy`` ``"selected"``: the policy model-based policy selection kept (``policy_step`` records its step)
+    instead of the latest. The training summary is the run's own record at ``threshold`` (``None``: the
+    run's configured threshold): its steps and training wall-clock to the first evaluation at or above it,
+    final and best mean test return, wall-clock and agent updates.
     """
     run = _common.load_checkpointed_run(run_dir)
     cfg = run.cfg
@@ -46,6 +50,12 @@ def evaluate(run_dir: Path, threshold: float | None = None) -> dict:
         raise SystemExit(f"{run_dir}: {note}")
     label = run_dir.parent.name if run_dir.name.startswith("seed") else cfg.method
     row: dict = {"run_dir": str(run_dir), "label": label, "method": cfg.method, "seed": cfg.seed, "step": run.t}
+    row["policy"] = policy
+    if policy == "selected":
+        try:
+            row["policy_step"] = run.use_selected_policy()
+        except ValueError as exc:
+            raise SystemExit(str(exc)) from None
     trained = run.run_dir.result(threshold) or {}
     keys = ("steps_to_threshold", "wall_s_to_threshold", "final_return", "best_return", "wall_s", "updates")
     row["training"] = {key: trained.get(key) for key in keys}
@@ -79,17 +89,24 @@ def main() -> None:
     parser.add_argument("run_dirs", nargs="+", type=Path)
     parser.add_argument("--threshold", type=float, default=None, help="count the runs whose mean return reaches it")
     parser.add_argument("--name", default=None, help="record benchmarks/results/<name>.json")
+    parser.add_argument(
+        "--policy",
+        choices=("latest", "selected"),
+        default="latest",
+        help="the latest checkpoint's policy, or the one model-based policy selection kept (--dyna.select-episodes)",
+    )
     args = parser.parse_args()
     rows = []
     for run_dir in args.run_dirs:
-        row = evaluate(run_dir, args.threshold)
+        row = evaluate(run_dir, args.threshold, args.policy)
         rows.append(row)
         parts = [
             f"{p} mean {row[p]['return_mean']:8.2f} (quartiles {row[p]['return_q25']:.1f}/{row[p]['return_median']:.1f}/"
             f"{row[p]['return_q75']:.1f}, min {row[p]['return_min']:.1f}, max {row[p]['return_max']:.1f})"
             for p in PROTOCOLS
         ]
-        print(f"{row['label']:>13s} seed {row['seed']} step {row['step']:>7,d}  " + "  ".join(parts), flush=True)
+        at = f"step {row['step']:>7,d}" + (f" (policy of step {row['policy_step']:,d})" if "policy_step" in row else "")
+        print(f"{row['label']:>13s} seed {row['seed']} {at}  " + "  ".join(parts), flush=True)
         if args.threshold is not None:
             t = row["training"]
             wall = "—" if t["wall_s_to_threshold"] is None else f"{t['wall_s_to_threshold']:,.0f} s"

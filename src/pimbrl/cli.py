@@ -256,14 +256,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     cfg = run.cfg
     label = f"step {run.t:,d}"
     if args.policy == "selected":
-        selector = None if run.model is None else run.model.selector
-        if selector is None or selector.best_policy is None:
-            raise ValueError(
-                f"{args.run_dir} has no selected policy: it was trained without model-based policy selection "
-                "(train with --dyna.select-episodes N, or evaluate --policy latest)"
-            )
-        run.agent.load_policy_state(selector.best_policy)
-        label = f"selected at step {selector.best_step:,d} of {run.t:,d}"
+        label = f"selected at step {run.use_selected_policy():,d} of {run.t:,d}"
     evaluator = run.evaluator_for(args.protocol, args.episodes or None)
     result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     s = {**result.summary(), **result.quartiles()}

@@ -152,6 +152,21 @@ class Run:
             return self.evaluator
         return Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed, protocol=protocol)
 
+    def use_selected_policy(self) -> int:
+        """Load the policy that model-based policy selection kept into the agent; returns its step.
+
+        Raises ``ValueError`` if the run was trained without selection (``dyna.select_episodes`` 0) or has
+        not selected a policy yet.
+        """
+        selector = None if self.model is None else self.model.selector
+        if selector is None or selector.best_policy is None or selector.best_step is None:
+            raise ValueError(
+                f"{self.run_dir.path} has no selected policy: it was trained without model-based policy selection "
+                "(train with --dyna.select-episodes N, or evaluate its latest policy)"
+            )
+        self.agent.load_policy_state(selector.best_policy)
+        return selector.best_step
+
     # ------------------------------------------------------------------ checkpoint = the components' states
     def state_dict(self) -> dict[str, Any]:
         """The full training state: a dict of the components' state dicts."""
