@@ -19,15 +19,16 @@ SMALL_AGENT = {"hidden": (16, 16), "batch_size": 16}
 DYNA = {"model": "physics", "start_model_after": 100, "rollouts": 4, "rollout_length": 5, "threshold": 1e3, "validation_size": 32}
 
 
-def _run(tmp_path, name: str, select: int):
-    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": select})
+def _run(tmp_path, name: str, select: int, env: str = "pimbrl/Pendulum-v0"):
+    cfg = resolve_config(env, dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": select})
     run = create_run(cfg, tmp_path / name, progress=False)
     return run, train(run)
 
 
-def test_selection_keeps_the_best_imagined_policy_and_trains_as_without_it(tmp_path) -> None:
-    plain, _ = _run(tmp_path, "plain", 0)
-    run, summary = _run(tmp_path, "select", 8)
+@pytest.mark.parametrize("env", ["pimbrl/Pendulum-v0", "pimbrl/CartPole-v0"])  # Box and Discrete(2) actions
+def test_selection_keeps_the_best_imagined_policy_and_trains_as_without_it(tmp_path, env: str) -> None:
+    plain, _ = _run(tmp_path, "plain", 0, env)
+    run, summary = _run(tmp_path, "select", 8, env)
     drop = ("wall_s", "steps_per_s")
     # the judge draws from none of the run's streams and changes no weight: the same run, bit for bit
     assert _table(plain.run_dir.path, "evaluations.csv", drop) == _table(run.run_dir.path, "evaluations.csv", drop)
@@ -48,6 +49,26 @@ def test_selection_keeps_the_best_imagined_policy_and_trains_as_without_it(tmp_p
     written = json.loads((run.run_dir.path / "config.json").read_text())["summary"]
     assert written["selected_step"] == summary.selected_step
     assert plain.summary().selected_step is None
+    # the kept policy is loaded into the agent, whatever the agent holds: it scores its recorded test return
+    assert run.selector is not None and run.selector.best_policy is not None
+    with torch.no_grad():
+        for p in run.agent.actor.parameters():
+            p.zero_()
+    assert run.use_selected_policy() == summary.selected_step
+    for name, p in run.agent.actor.state_dict().items():
+        assert torch.equal(p, run.selector.best_policy[name]), name
+    again = run.evaluator.run(lambda o: run.agent.act(o, deterministic=True))
+    assert again.mean == pytest.approx(summary.selected_return_mean)
+    with pytest.raises(ValueError, match="trained without model-based policy selection"):
+        plain.use_selected_policy()
+
+
+def test_a_run_that_has_not_evaluated_yet_has_no_selected_policy(tmp_path) -> None:
+    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 4})
+    run = create_run(cfg, tmp_path / "run", progress=False)
+    with pytest.raises(ValueError, match="has not selected a policy yet"):
+        run.use_selected_policy()
+    run.run_dir.close()
 
 
 def test_imagined_episodes_of_the_physics_model_are_the_real_episodes(tmp_path) -> None:
@@ -95,6 +116,7 @@ def test_eval_of_the_selected_policy(tmp_path, capsys) -> None:
     out = capsys.readouterr().out
     assert f"selected at step {summary.selected_step:,d} of 600" in out
     payload = json.loads(out.strip().splitlines()[-1])
+    assert payload["policy_step"] == summary.selected_step and payload["step"] == 600
     # the selected policy, re-evaluated on the run's test states, scores what it scored when it was kept
     assert payload["policy"] == "selected" and payload["return_mean"] == pytest.approx(summary.selected_return_mean)
     plain, _ = _run(tmp_path, "plain", 0)

@@ -254,9 +254,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     run = load_run(args.run_dir, require_checkpoint=True)
     _print_kernel_note(run)
     cfg = run.cfg
-    label = f"step {run.t:,d}"
+    label, policy_step = f"step {run.t:,d}", run.t
     if args.policy == "selected":
-        label = f"selected at step {run.use_selected_policy():,d} of {run.t:,d}"
+        policy_step = run.use_selected_policy()
+        label = f"selected at step {policy_step:,d} of {run.t:,d}"
     evaluator = run.evaluator_for(args.protocol, args.episodes or None)
     result = evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     s = {**result.summary(), **result.quartiles()}
@@ -270,7 +271,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         reached = steps_to_threshold(rows, cfg.threshold)
         print(f"steps to threshold {cfg.threshold:g}: {'not reached' if reached is None else f'{reached:,d}'}")
     if args.json:
-        payload = {"step": run.t, "policy": args.policy, "protocol": args.protocol, **s, "returns": result.returns.tolist()}
+        payload = {
+            "step": run.t,
+            "policy": args.policy,
+            "policy_step": policy_step,
+            "protocol": args.protocol,
+            **s,
+            "returns": result.returns.tolist(),
+        }
         print(json.dumps({**payload, "config": dataclasses.asdict(cfg)}, default=str))
     return 0
 

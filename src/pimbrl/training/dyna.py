@@ -209,6 +209,8 @@ class DynaModel:
         residual = self.trainer.residual
         if residual is not None and residual.coefficients is not None:
             self.model_env.physics = residual.current_physics()
+            if self.selector is not None:  # the policies are judged by the same physics
+                self.selector.env.physics = self.model_env.physics
 
     def _physics_started(self, n_real: int) -> bool:
         """PiMBRL with ``physics_start``: the physics loss from then on (alone before ``start_model_after``)."""

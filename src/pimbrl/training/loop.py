@@ -43,6 +43,7 @@ from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator
 from .logger import RunLogger
 from .rundir import CheckpointError, RunDirectory, package_versions, steps_to_threshold
+from .selection import PolicySelector
 from .streams import RandomStreams
 
 __all__ = [
@@ -141,6 +142,11 @@ class Run:
         return self.task.physics
 
     @property
+    def selector(self) -> PolicySelector | None:
+        """Model-based policy selection of a run with ``dyna.select_episodes`` (else ``None``)."""
+        return None if self.model is None else self.model.selector
+
+    @property
     def transition_model(self) -> TransitionModel | None:
         """The learned model of an mbrl/pimbrl run (``None`` for mfrl)."""
         return None if self.model is None else self.model.model
@@ -158,11 +164,16 @@ class Run:
         Raises ``ValueError`` if the run was trained without selection (``dyna.select_episodes`` 0) or has
         not selected a policy yet.
         """
-        selector = None if self.model is None else self.model.selector
-        if selector is None or selector.best_policy is None or selector.best_step is None:
+        selector = self.selector
+        if selector is None:
             raise ValueError(
                 f"{self.run_dir.path} has no selected policy: it was trained without model-based policy selection "
                 "(train with --dyna.select-episodes N, or evaluate its latest policy)"
+            )
+        if selector.best_policy is None or selector.best_step is None:
+            raise ValueError(
+                f"{self.run_dir.path} has not selected a policy yet: its checkpoint precedes its first evaluation "
+                "(resume it past an evaluation, or evaluate its latest policy)"
             )
         self.agent.load_policy_state(selector.best_policy)
         return selector.best_step
@@ -204,7 +215,7 @@ class Run:
         """What the run has reached, from its evaluations."""
         rows = self.run_dir.evaluations.read()
         returns = [float(r["return_mean"]) for r in rows]
-        selector = None if self.model is None else self.model.selector
+        selector = self.selector
         return RunSummary(
             steps=self.t,
             updates=self.agent.n_updates,
@@ -310,7 +321,7 @@ def _evaluate(run: Run) -> None:
     with run.logger.timed("evaluate"):
         result = run.evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     run.logger.evaluation(run.t, result, run.agent.n_updates)
-    selector = None if run.model is None else run.model.selector
+    selector = run.selector
     if selector is not None:
         with run.logger.timed("select"):
             run.run_dir.selection.append(selector.observe(run.t, run.agent, result.mean))

@@ -10,9 +10,9 @@ test return it got at that evaluation, on states the selection never saw.
 
 How good the judge is depends on the model: with the physics in the model (``dyna.model physics``) an
 imagined episode is the simulator's episode to round-off; a learned model ranks policies only as well as
-it predicts whole episodes. Selection draws nothing from the run's random streams (its start states and
-the action mapping have their own fixed generators) and changes no weight, so a run with selection trains
-exactly as the same run without it.
+it predicts whole episodes. Selection draws nothing from the run's random streams (its start states are
+drawn once from their own fixed generator; a ``Discrete(2)`` action maps to its more probable value, as in
+evaluation) and changes no weight, so a run with selection trains exactly as the same run without it.
 
 An imagined episode ends like a real one: at the time limit or at a termination. A prediction that blows
 up ends the episode with the task's ``divergence_penalty`` (as a real blow-up does), counted in
@@ -58,7 +58,7 @@ class PolicySelector:
         adapter: maps the agent's normalised actions to environment actions.
         physics: the physics whose reward and divergence bound judge the imagined steps (the run's prior).
         episodes: imagined episodes per evaluation, from that many training initial states.
-        seed: seeds the fixed draw of the start states (and of stochastic action mappings).
+        seed: seeds the fixed draw of the start states.
         use_path: rewards over the model's intermediate states (as the run's imagination).
     """
 
@@ -76,7 +76,8 @@ class PolicySelector:
             raise ValueError(f"policy selection needs at least one imagined episode, got {episodes}")
         self.task = task
         self.states = task.sample_initial_states(np.random.default_rng([seed, 1]), episodes)
-        self.env = ModelEnv(model, task, adapter, np.random.default_rng([seed, 2]), use_path=use_path, physics=physics)
+        # no rng: a Discrete(2) action maps to its more probable value, as in the real evaluation
+        self.env = ModelEnv(model, task, adapter, None, use_path=use_path, physics=physics)
         self.best_return: float | None = None
         self.best_step: int | None = None
         self.best_test_return: float | None = None
