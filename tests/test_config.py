@@ -49,6 +49,22 @@ def test_a_flag_that_does_not_apply_is_an_error_that_says_why(argv, message, tmp
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["ks", "--dyna.reset-start-symmetry", "true"], "acts on reset starts, and --dyna.reset-start-fraction is 0"),
+        (
+            ["pendulum", "--dyna.reset-start-fraction", "0.5", "--dyna.reset-start-symmetry", "true"],
+            "needs a PDE on a periodic grid (shifts, reflection); pimbrl/Pendulum-v0 has none",
+        ),
+    ],
+)
+def test_symmetric_reset_starts_need_reset_starts_and_a_pde(tmp_path, capsys, argv: list[str], message: str) -> None:
+    assert main(["train", *argv, "--method", "mbrl", "--run-dir", str(tmp_path / "r"), "--print-config"]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
 def test_rollout_start_shares_over_one_are_an_error_that_says_why(tmp_path, capsys) -> None:
     argv = ["pendulum", "--method", "mbrl", "--dyna.imagined-start-fraction", "0.6", "--dyna.reset-start-fraction", "0.5"]
     assert main(["train", *argv, "--run-dir", str(tmp_path / "r"), "--print-config"]) == 2

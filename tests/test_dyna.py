@@ -272,3 +272,32 @@ def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) ->
     assert run.model is not None
     k = run.model.imagined.extra("k", torch.arange(len(run.model.imagined))).reshape(-1)
     assert run.model.imagined_total == len(k) > 0 and int((k == 0).sum()) > 0  # some episodes began at reset
+
+
+def test_symmetric_reset_starts_are_images_of_training_states(tmp_path, ks_small_pools) -> None:
+    """``dyna.reset_start_symmetry``: each fresh imagined episode starts from a training-pool state shifted
+    and possibly reflected (``u(x) -> -u(-x)``), mostly not a pool state itself, never a test-pool state."""
+    from pimbrl.training.cli_args import config_from_argv
+
+    argv = ["ks", "--method", "mbrl", "--dyna.model", "physics", *_for_method(DYNA_SMOKE["ks"], "mbrl"), *TINY,
+            *SMALL_MODEL, "--dyna.reset-start-fraction", "1", "--dyna.reset-start-symmetry", "true"]  # fmt: skip
+    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    train(run)
+    model = run.model
+    assert model is not None
+    idx = torch.arange(len(model.imagined))
+    k = model.imagined.extra("k", idx).reshape(-1).long()
+    first = model.imagined.extra("state", idx).double().numpy()[(k == 0).numpy()]
+    train_pool, test_pool = (pool.states for pool in ks_small_pools)
+    n = train_pool.shape[1]
+    images = [np.roll(train_pool, s, axis=1) for s in range(n)]
+    images += [np.roll(-np.roll(train_pool[:, ::-1], 1, axis=1), s, axis=1) for s in range(n)]
+    every = np.concatenate(images)  # all shifts and reflected shifts of the pool
+
+    def nearest(pool: np.ndarray, x: np.ndarray) -> float:
+        return float(np.abs(pool - x).max(axis=1).min())
+
+    assert len(first) >= 16
+    assert all(nearest(every, x) < 1e-5 for x in first)  # float32 copies of exact images
+    assert sum(nearest(train_pool, x) < 1e-5 for x in first) < len(first) // 2  # mostly new states
+    assert not any(nearest(test_pool, x) < 1e-5 for x in first)

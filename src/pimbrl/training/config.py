@@ -105,6 +105,13 @@ class DynaConfig:
         "buffer may not hold (with imagined_start_fraction at most 1 in all)",
         in_range(0.0, 1.0),
     )
+    reset_start_symmetry: bool = param(
+        False,
+        "reset starts from images of the sampled initial states under the equation's symmetries (a random "
+        "circular shift and, half of the time, the reflection u(x) -> -u(-x)): many more distinct starts than "
+        "the pool holds, for initial-state distributions that share the symmetries (KS: snapshots of its "
+        "chaotic attractor); PDEs only, with reset_start_fraction > 0",
+    )
     select_episodes: int = param(
         0,
         "policy selection in the model: at every evaluation, run the deterministic policy for this many whole "
@@ -633,8 +640,19 @@ def check_model_kind(cfg: TrainConfig) -> None:
 
 
 def check_rollout_starts(cfg: TrainConfig) -> None:
-    """A clear :class:`ConfigError` when the shares of the imagined rollouts' start states exceed the whole."""
+    """A clear :class:`ConfigError` for rollout starts that cannot be made.
+
+    That is shares of the start states that exceed the whole, or symmetric reset starts without reset
+    starts or on an ODE system.
+    """
     d = cfg.dyna
+    if d.reset_start_symmetry and d.reset_start_fraction == 0:
+        raise ConfigError(
+            "--dyna.reset-start-symmetry true acts on reset starts, and --dyna.reset-start-fraction is 0: "
+            "give a fraction (e.g. 0.5) or drop the flag"
+        )
+    if d.reset_start_symmetry and not is_pde_env(cfg.env):
+        raise ConfigError(f"--dyna.reset-start-symmetry needs a PDE on a periodic grid (shifts, reflection); {cfg.env} has none")
     if d.imagined_start_fraction + d.reset_start_fraction > 1.0:
         raise ConfigError(
             f"--dyna.imagined-start-fraction {d.imagined_start_fraction} and --dyna.reset-start-fraction "

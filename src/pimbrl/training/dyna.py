@@ -39,7 +39,7 @@ from ..config import PHYSICS_MODEL_KINDS, parse_learned, parse_prior
 from ..envs import Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
-from ..models.state_sources import broad_actions, broad_pairs, even_shares, parse_sources
+from ..models.state_sources import broad_actions, broad_pairs, broad_states, even_shares, parse_sources
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from .config import TrainConfig
@@ -252,7 +252,10 @@ class DynaModel:
         ks = [real.extra("k", starts[0])]
         if n_reset:
             # imagined episodes from their first step, started as the environment's resets start them
-            states.append(torch.from_numpy(self.task.sample_initial_states(rng, n_reset)).to(states[0].dtype))
+            reset = torch.from_numpy(self.task.sample_initial_states(rng, n_reset))
+            if d.reset_start_symmetry:  # an image of each under a random symmetry of the equation
+                reset = broad_states(self.physics, "symmetry", reset, n_reset, rng)
+            states.append(reset.to(states[0].dtype))
             ks.append(torch.zeros((n_reset, *ks[0].shape[1:]), dtype=ks[0].dtype))
         if n_img:
             # continue only imagined rollouts that had not ended (no termination, time left)
