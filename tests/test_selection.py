@@ -140,3 +140,20 @@ def test_evaluating_a_run_without_a_checkpoint_says_so(tmp_path, capsys) -> None
     assert "has no checkpoint yet: nothing to evaluate (train or resume it first)" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="has no checkpoint yet"):
         load_run(tmp_path / "new")
+
+
+def test_the_selection_summary_benchmark_reads_what_the_run_logged(tmp_path) -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    run, summary = _run(tmp_path, "select", 8)
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "selection_summary.py"
+    out = subprocess.run(
+        [sys.executable, str(script), str(run.run_dir.path), "--threshold=-1e9"], capture_output=True, text=True, check=True
+    ).stdout
+    assert f"selected {summary.selected_return_mean:7.2f} (step {summary.selected_step:,d})" in out
+    assert "first at threshold 100 " in out  # every return is above -1e9: the first evaluation
+    plain, _ = _run(tmp_path, "plain", 0)
+    failed = subprocess.run([sys.executable, str(script), str(plain.run_dir.path)], capture_output=True, text=True)
+    assert failed.returncode != 0 and "was the run trained with --dyna.select-episodes N?" in failed.stderr
