@@ -65,13 +65,14 @@ class ModelEnv:
 
     @torch.no_grad()
     def step(
-        self, state: np.ndarray, k: np.ndarray, action: np.ndarray
+        self, state: np.ndarray, k: np.ndarray, action: np.ndarray, deterministic: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """One imagined control step for a batch: ``(next_state, reward, terminated, valid, physical_action)``.
 
-        ``valid`` is False where the prediction blew up (those rows must be discarded).
+        ``valid`` is False where the prediction blew up (those rows must be discarded). ``deterministic``: a
+        ``Discrete(2)`` action maps to its more probable value, as in evaluation, and nothing is drawn from ``rng``.
         """
-        phys_a = self.task.physical_action(self.adapter.to_env(action, self.rng), len(state))
+        phys_a = self.task.physical_action(self.adapter.to_env(action, None if deterministic else self.rng), len(state))
         path = self.model(torch.as_tensor(state, dtype=torch.float32), torch.as_tensor(phys_a, dtype=torch.float32))
         self.model_calls += 1
         path_np = path.double().numpy()

@@ -125,13 +125,7 @@ class DynaModel:
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
         #: model-based policy selection (``dyna.select_episodes``), None when off
-        self.selector = (
-            PolicySelector(
-                self.model, task, adapter, self.physics, d.select_episodes, cfg.eval_seed, use_path=d.reward_quadrature == "path"
-            )
-            if d.select_episodes
-            else None
-        )
+        self.selector = PolicySelector(self.model_env, d.select_episodes, cfg.eval_seed) if d.select_episodes else None
 
     # ------------------------------------------------------------------ real transitions
     def holdout_flag(self) -> float:
@@ -209,8 +203,6 @@ class DynaModel:
         residual = self.trainer.residual
         if residual is not None and residual.coefficients is not None:
             self.model_env.physics = residual.current_physics()
-            if self.selector is not None:  # the policies are judged by the same physics
-                self.selector.env.physics = self.model_env.physics
 
     def _physics_started(self, n_real: int) -> bool:
         """PiMBRL with ``physics_start``: the physics loss from then on (alone before ``start_model_after``)."""

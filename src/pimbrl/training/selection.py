@@ -28,10 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..agents import Agent
-from ..envs import Task
-from ..models import ModelEnv, TransitionModel
-from ..physics import Physics
-from ..spaces import ActionAdapter
+from ..models import ModelEnv
 
 __all__ = ["ImaginedEvaluation", "PolicySelector"]
 
@@ -53,31 +50,18 @@ class PolicySelector:
     """Scores each evaluated policy in the model and keeps the best one (see the module docstring).
 
     Args:
-        model: the run's transition model (shared, not copied: the current model judges).
-        task: the environment's task (initial-state distribution, observations, episode length).
-        adapter: maps the agent's normalised actions to environment actions.
-        physics: the physics whose reward and divergence bound judge the imagined steps (the run's prior).
+        env: the run's imagined environment (shared: the current model judges, with the physics the run's
+            imagination uses, learned coefficients included).
         episodes: imagined episodes per evaluation, from that many training initial states.
         seed: seeds the fixed draw of the start states.
-        use_path: rewards over the model's intermediate states (as the run's imagination).
     """
 
-    def __init__(
-        self,
-        model: TransitionModel,
-        task: Task,
-        adapter: ActionAdapter,
-        physics: Physics,
-        episodes: int,
-        seed: int,
-        use_path: bool = True,
-    ) -> None:
+    def __init__(self, env: ModelEnv, episodes: int, seed: int) -> None:
         if episodes <= 0:
             raise ValueError(f"policy selection needs at least one imagined episode, got {episodes}")
-        self.task = task
-        self.states = task.sample_initial_states(np.random.default_rng([seed, 1]), episodes)
-        # no rng: a Discrete(2) action maps to its more probable value, as in the real evaluation
-        self.env = ModelEnv(model, task, adapter, None, use_path=use_path, physics=physics)
+        self.env = env
+        self.task = env.task
+        self.states = self.task.sample_initial_states(np.random.default_rng([seed, 1]), episodes)
         self.best_return: float | None = None
         self.best_step: int | None = None
         self.best_test_return: float | None = None
@@ -97,7 +81,7 @@ class PolicySelector:
             idx = np.flatnonzero(alive)
             s, kk = state[idx], k[idx]
             action = agent.act(self.task.observe(s, kk), deterministic=True)
-            nxt, reward, terminated, valid, _ = self.env.step(s, kk, action)
+            nxt, reward, terminated, valid, _ = self.env.step(s, kk, action, deterministic=True)
             returns[idx] += np.where(valid, reward, self.task.divergence_penalty)
             blown[idx[~valid]] = True
             state[idx[valid]] = nxt[valid]
