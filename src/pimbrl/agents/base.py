@@ -124,6 +124,18 @@ class Agent(ABC):
         """Load actor weights saved by :meth:`policy_state` (the critics and targets are left as they are)."""
         self._modules()["actor"].load_state_dict(state)
 
+    def set_lr_scale(self, scale: float) -> None:
+        """Set the actor's and critics' learning rates to ``scale`` times their configured values.
+
+        A learning-rate schedule calls this before each update phase; the rates live in the optimisers'
+        state, so a checkpoint keeps them. SAC's temperature keeps its own rate.
+        """
+        if not 0.0 <= scale <= 1.0:
+            raise ValueError(f"learning-rate scale must be in [0, 1], got {scale}")
+        for opt, lr in ((self._modules()["actor_opt"], self.config.actor_lr), (self.critic_opt, self.config.critic_lr)):
+            for group in opt.param_groups:
+                group["lr"] = lr * scale
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`state_dict` saved; the checkpoint must be of the same agent type."""
         if state["name"] != self.name:

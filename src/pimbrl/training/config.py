@@ -221,6 +221,13 @@ class TrainConfig:
         5_000, "real steps between checkpoints (taken at the next episode end)", [positive(), at_most(MAX_STEPS)]
     )
     log_every: int = param(1_000, "real steps between rows of metrics.csv", [positive(), at_most(MAX_STEPS)])
+    lr_decay_after: int | None = param(
+        None,
+        "real step after which the actor and critic learning rates fall linearly, to lr_decay_to times their "
+        "value at total_steps (none: constant, the paper's; a resume that changes total_steps changes the slope)",
+        [non_negative(), at_most(MAX_STEPS)],
+    )
+    lr_decay_to: float = param(0.1, "with lr_decay_after: the learning rates' final fraction of their value", in_range(0.0, 1.0))
     threads: int = param(1, "torch threads for this run", in_range(1, 256))
     tensorboard: bool = param(False, "also write TensorBoard events (needs the tensorboard package)")
     env_kwargs: dict = dataclasses.field(
@@ -617,6 +624,7 @@ def _check_runnable(cfg: TrainConfig) -> None:
     The environment's keyword arguments, TensorBoard, the physics-loss sources the environment offers.
     """
     check_env_kwargs(cfg.env, cfg.env_kwargs)
+    check_lr_decay(cfg)
     if cfg.tensorboard:
         check_tensorboard()
     if cfg.method == "pimbrl":
@@ -625,6 +633,19 @@ def _check_runnable(cfg: TrainConfig) -> None:
         check_coefficients(cfg)
         check_model_kind(cfg)
         check_rollout_starts(cfg)
+
+
+def check_lr_decay(cfg: TrainConfig) -> None:
+    """A clear :class:`ConfigError` for a learning-rate decay that cannot happen as asked."""
+    if cfg.lr_decay_after is None:
+        if cfg.lr_decay_to != TrainConfig().lr_decay_to:
+            raise ConfigError("--lr-decay-to sets where the decay ends; give --lr-decay-after STEP too (the step it starts)")
+        return
+    if cfg.lr_decay_after >= cfg.total_steps:
+        raise ConfigError(
+            f"--lr-decay-after {cfg.lr_decay_after:,} is not before --total-steps {cfg.total_steps:,}: the rates would "
+            "never fall; give a step below total_steps, or drop --lr-decay-after"
+        )
 
 
 def check_model_kind(cfg: TrainConfig) -> None:

@@ -101,6 +101,13 @@ class UpdateSchedule:
         self.credit = float(state["credit"])
 
 
+def lr_scale(t: int, start: int, end: int, final: float) -> float:
+    """The learning rates' fraction at real step ``t``: 1 until ``start``, then linear to ``final`` at ``end``."""
+    if t <= start:
+        return 1.0
+    return 1.0 - (1.0 - final) * min(1.0, (t - start) / (end - start))
+
+
 @dataclass
 class Run:
     """The components of one training run (see the module docstring)."""
@@ -235,6 +242,8 @@ class Run:
             "update_to_data": self.agent.n_updates / max(self.t, 1),
             "real_buffer": len(self.real),
         }
+        if self.cfg.lr_decay_after is not None:
+            row["lr_scale"] = lr_scale(self.t, self.cfg.lr_decay_after, self.cfg.total_steps, self.cfg.lr_decay_to)
         if self.model is not None:
             row.update(self.model.metric_row())
         return row
@@ -282,6 +291,8 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
                     run.model.phase(run.real, run.agent, run.t, log.last_eval, log.timed, log.message)
                     event("model_phase", run)
                 with log.timed("agent_update"):
+                    if cfg.lr_decay_after is not None:
+                        run.agent.set_lr_scale(lr_scale(run.t, cfg.lr_decay_after, cfg.total_steps, cfg.lr_decay_to))
                     for _ in range(run.schedule.take()):
                         size = cfg.agent_config.batch_size
                         if run.model is not None:
@@ -352,6 +363,8 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
     columns = ["agent/critic_loss", "agent/q_mean", "agent/actor_loss"]
     if cfg.agent == "sac":
         columns += ["agent/entropy", "agent/alpha"]
+    if cfg.lr_decay_after is not None:
+        columns.append("lr_scale")
     if model is not None:
         columns += model.metric_names()
     logger = RunLogger(run_dir, columns, PHASES, cfg.threshold, tensorboard=cfg.tensorboard, progress=progress)
