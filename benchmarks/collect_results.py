@@ -45,6 +45,10 @@ def compare_table(summary: dict) -> str:
     for name, r in summary["ratios"].items():
         value = "—" if r["value"] is None else f"{r['value']:.3f}"
         rows.append(f"{name}: {value} ({r['note']})  ")
+        median = r.get("median")
+        if median is not None:
+            value = "—" if median["value"] is None else f"{median['value']:.3f}"
+            rows.append(f"{name}, medians: {value} ({median['note']})  ")
     return "\n".join(rows)
 
 

@@ -226,6 +226,33 @@ def test_step_ratio_counts_unfinished_runs_at_their_budget() -> None:
     ratio = step_ratio(pim, mfrl)
     assert ratio["value"] == pytest.approx(0.15) and ratio["note"].startswith("upper bound: 2 of 3")
     assert step_ratio(pim, pim)["value"] == 1.0 and step_ratio(mfrl, pim)["value"] is None
+    # medians: pim's is measured (1500); mfrl's middle run did not reach it, so its median exceeds 12,000
+    assert pim["steps_to_threshold_median"] == 1500.0 and mfrl["steps_to_threshold_median"] is None
+    assert mfrl["steps_to_threshold_median_above"] == 12000
+    assert ratio["median"]["value"] == pytest.approx(0.125) and ratio["median"]["note"].startswith("upper bound")
+    assert step_ratio(pim, pim)["median"]["value"] == 1.0
+    assert step_ratio(mfrl, pim)["median"]["value"] is None
+
+
+def test_the_median_steps_to_threshold_is_known_when_the_middle_runs_reached_it() -> None:
+    from pimbrl.experiments.compare import median_steps_to_threshold, step_ratio, summarize_method
+
+    def runs(*pairs: tuple[int | None, int]) -> list[dict]:
+        return [
+            {"steps_to_threshold": s, "steps": b, "final_return": 0.0, "wall_s": 1.0, "update_to_data": 1.0} for s, b in pairs
+        ]
+
+    # four of six reached: the middle two (55,000 and 57,500) are measured, the two censored runs sort last
+    six = runs((37500, 60000), (55000, 60000), (None, 60000), (57500, 60000), (32500, 60000), (None, 60000))
+    assert median_steps_to_threshold(six) == {"steps_to_threshold_median": 56250.0, "steps_to_threshold_median_above": None}
+    # three of six: the upper middle run did not reach it, so the median is only bounded below
+    half = runs((37500, 60000), (None, 60000), (None, 60000), (57500, 60000), (32500, 60000), (None, 60000))
+    assert median_steps_to_threshold(half) == {"steps_to_threshold_median": None, "steps_to_threshold_median_above": 60000}
+    # a censored run whose budget is shorter than a reached step could sort anywhere: unknown
+    short = runs((5000, 6000), (None, 4000), (3000, 6000))
+    assert median_steps_to_threshold(short) == {"steps_to_threshold_median": None, "steps_to_threshold_median_above": None}
+    assert step_ratio(summarize_method(six), summarize_method(short))["median"]["value"] is None
+    assert median_steps_to_threshold([])["steps_to_threshold_median"] is None
 
 
 @pytest.mark.parametrize("fraction", [0.0, 1.0])

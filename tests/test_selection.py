@@ -159,3 +159,38 @@ def test_the_selection_summary_benchmark_reads_what_the_run_logged(tmp_path) -> 
     plain, _ = _run(tmp_path, "plain", 0)
     failed = subprocess.run([sys.executable, str(script), str(plain.run_dir.path)], capture_output=True, text=True)
     assert failed.returncode != 0 and "was the run trained with --dyna.select-episodes N?" in failed.stderr
+
+
+def test_the_steps_ratio_benchmark_reads_run_directories_and_records(tmp_path) -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from pimbrl.training import RunDirectory
+
+    run, _ = _run(tmp_path, "plain", 0)
+    evals = run.run_dir.evaluations.read()
+    # a threshold between the 2nd and the best evaluation: the run reaches it at the first evaluation at or above it
+    returns = [float(e["return_mean"]) for e in evals]
+    threshold = (sorted(returns)[-1] + sorted(returns)[-2]) / 2
+    first = next(int(e["step"]) for e, r in zip(evals, returns, strict=True) if r >= threshold)
+    record = tmp_path / "compare.json"  # a comparison record of a run whose directory is gone
+    filler = {"final_return": -1.0, "wall_s": 1.0, "update_to_data": 1.0}
+    record.write_text(
+        json.dumps(
+            {"threshold": threshold, "runs": [{"method": "mfrl", "seed": 0, "steps_to_threshold": None, "steps": 6000, **filler}]}
+        )
+    )
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "steps_ratio.py"
+    args = [sys.executable, str(script), "--a", str(run.run_dir.path), "--threshold", repr(threshold)]
+    out = subprocess.run([*args, "--b", str(run.run_dir.path)], capture_output=True, text=True, check=True).stdout
+    assert f"a: reached 1/1; median {first:,}; seed 0: {first:,}" in out and "a/b, medians: 1.000" in out
+    out = subprocess.run(
+        [*args, "--b-record", str(record), "--b-method", "mfrl"], capture_output=True, text=True, check=True
+    ).stdout
+    assert "b: reached 0/1; median > 6,000" in out and f"a/b, medians: {first / 6000:.3f} (upper bound" in out
+    assert RunDirectory(run.run_dir.path).result(threshold)["steps_to_threshold"] == first
+    wrong = subprocess.run(
+        [*args[:-1], "-1000000000.0", "--b-record", str(record), "--b-method", "mfrl"], capture_output=True, text=True
+    )
+    assert wrong.returncode != 0 and "was summarised at threshold" in wrong.stderr

@@ -393,6 +393,10 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
     for name, r in result["ratios"].items():
         value = "-" if r["value"] is None else f"{r['value']:.3f}"
         print(f"  steps ratio {name}: {value} ({r['note']})")
+        median = r.get("median")
+        if median is not None:
+            value = "-" if median["value"] is None else f"{median['value']:.3f}"
+            print(f"  steps ratio {name}, medians: {value} ({median['note']})")
     if result["failed"]:
         print(f"failed runs: {', '.join(result['failed'])}", file=sys.stderr)
         return 1

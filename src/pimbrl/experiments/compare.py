@@ -34,6 +34,7 @@ threshold, final and best mean test return, wall-clock, updates and the update-t
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import time
@@ -392,6 +393,7 @@ def summarize_method(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "steps_to_threshold_lower_bound": float(
             np.mean([r["steps"] if r["steps_to_threshold"] is None else r["steps_to_threshold"] for r in mine])
         ),
+        **median_steps_to_threshold(mine),
         "max_steps": max(r["steps"] for r in mine),
         "final_return_mean": float(np.mean([r["final_return"] for r in mine])),
         "wall_s_mean": float(np.mean([r["wall_s"] for r in mine])),
@@ -399,20 +401,61 @@ def summarize_method(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def median_steps_to_threshold(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The median over runs of the steps to the threshold, where runs that never reached it are censored.
+
+    A run that never reached the threshold needed more than its budget (``steps``). As long as that budget is
+    at least every step at which another run reached it, such a run sorts after all of those, so the median
+    is known exactly when the middle run(s) reached the threshold; otherwise it is only known to exceed the
+    smallest budget among the runs that did not (``steps_to_threshold_median_above``). Returns both keys,
+    one of them ``None``; both ``None`` for no runs, or where a short budget makes the order unknown.
+    """
+    reached = [int(r["steps_to_threshold"]) for r in mine if r["steps_to_threshold"] is not None]
+    budgets = [int(r["steps"]) for r in mine if r["steps_to_threshold"] is None]
+    out: dict[str, Any] = {"steps_to_threshold_median": None, "steps_to_threshold_median_above": None}
+    if not mine or (budgets and reached and min(budgets) < max(reached)):
+        return out
+    median = float(np.median([*map(float, reached), *[math.inf] * len(budgets)]))
+    if math.isfinite(median):
+        out["steps_to_threshold_median"] = median
+    else:
+        out["steps_to_threshold_median_above"] = min(budgets)
+    return out
+
+
 def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    """Ratio of the mean steps to the threshold, a/b.
+    """Ratio of the mean steps to the threshold, a/b, and the ratio of the medians.
 
     Where some runs of b never reached the threshold, they count at their budget, which makes the ratio
-    an upper bound.
+    an upper bound. The ratio of the medians (``median``, see :func:`median_steps_to_threshold`) is a
+    measurement where both medians are known, an upper bound where only b's is censored (b's median is
+    above its budget), and ``None`` where a's is censored.
     """
+    result: dict[str, Any]
     if a["steps_to_threshold_mean"] is None:
-        return {"value": None, "note": "pimbrl did not reach the threshold on every seed"}
-    if b["steps_to_threshold_mean"] is None:
-        return {
+        result = {"value": None, "note": "pimbrl did not reach the threshold on every seed"}
+    elif b["steps_to_threshold_mean"] is None:
+        result = {
             "value": a["steps_to_threshold_mean"] / b["steps_to_threshold_lower_bound"],
             "note": f"upper bound: {b['seeds'] - b['reached']} of {b['seeds']} seeds did not reach it, counted at their budget",
         }
-    return {"value": a["steps_to_threshold_mean"] / b["steps_to_threshold_mean"], "note": "mean over seeds"}
+    else:
+        result = {"value": a["steps_to_threshold_mean"] / b["steps_to_threshold_mean"], "note": "mean over seeds"}
+    a_med, b_med = a.get("steps_to_threshold_median"), b.get("steps_to_threshold_median")
+    b_above = b.get("steps_to_threshold_median_above")
+    if a_med is None:
+        median = {"value": None, "note": "pimbrl's median run did not reach the threshold"}
+    elif b_med is not None:
+        median = {"value": a_med / b_med, "note": "ratio of the medians over seeds"}
+    elif b_above is not None:
+        median = {
+            "value": a_med / b_above,
+            "note": f"upper bound: the median run of the other method did not reach it within {b_above:,} steps",
+        }
+    else:
+        median = {"value": None, "note": "the other method's median is unknown (budgets shorter than its steps to the threshold)"}
+    result["median"] = median
+    return result
 
 
 def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
