@@ -30,6 +30,7 @@ from pathlib import Path
 
 import _common
 
+from pimbrl.training.config import POLICIES
 from pimbrl.training.rundir import kernel_note
 
 PROTOCOLS = ("test", "authors")
@@ -91,7 +92,7 @@ def main() -> None:
     parser.add_argument("--name", default=None, help="record benchmarks/results/<name>.json")
     parser.add_argument(
         "--policy",
-        choices=("latest", "selected"),
+        choices=POLICIES,
         default="latest",
         help="the latest checkpoint's policy, or the one model-based policy selection kept (--dyna.select-episodes)",
     )

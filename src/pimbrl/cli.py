@@ -458,6 +458,8 @@ def _cmd_figure(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``pimbrl`` argument parser with one subcommand per command; each sets ``func`` to its handler."""
+    from .training.config import POLICIES
+
     parser = _Parser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -522,7 +524,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument(
         "--policy",
-        choices=("latest", "selected"),
+        choices=POLICIES,
         default="latest",
         help="the checkpoint's latest policy (default), or the one model-based policy selection kept "
         "(runs trained with --dyna.select-episodes)",

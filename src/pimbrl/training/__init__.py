@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .collector import Collector
-    from .config import METHODS, PRESETS, DynaConfig, TrainConfig, resolve_config
+    from .config import METHODS, POLICIES, PRESETS, DynaConfig, TrainConfig, resolve_config
     from .dyna import PHASES, DynaModel
     from .evaluation import EvalResult, Evaluator
     from .logger import RunLogger
@@ -29,6 +29,7 @@ _WHERE = {
     "TrainConfig": "config",
     "resolve_config": "config",
     "PHASES": "dyna",
+    "POLICIES": "config",
     "DynaModel": "dyna",
     "EvalResult": "evaluation",
     "Evaluator": "evaluation",
@@ -52,6 +53,7 @@ _WHERE = {
 __all__ = [
     "METHODS",
     "PHASES",
+    "POLICIES",
     "PRESETS",
     "STREAM_KEYS",
     "Collector",

@@ -48,6 +48,7 @@ from ..config import (
 
 __all__ = [
     "METHODS",
+    "POLICIES",
     "PRESETS",
     "DynaConfig",
     "TrainConfig",
@@ -67,6 +68,10 @@ __all__ = [
 
 METHODS = ("mfrl", "mbrl", "pimbrl")
 MODEL_BASED = ("mbrl", "pimbrl")
+
+
+#: the policies of a run that can be evaluated: the checkpoint's latest, or the one policy selection kept
+POLICIES = ("latest", "selected")
 
 
 @dataclass(frozen=True)
