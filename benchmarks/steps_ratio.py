@@ -7,7 +7,7 @@ re-run). Printed and recorded:
 
 * per run: the seed, steps to the threshold (or "not within" its budget);
 * per group: how many reached it, the mean with non-reachers at their budget (a lower bound), and the
-  median, which is a measurement where the middle run(s) reached it and a lower bound otherwise
+  median, which is a measurement where the middle run(s) reached it and bounded otherwise
   (:func:`pimbrl.experiments.compare.median_steps_to_threshold`);
 * the ratio a/b of the medians (measured, an upper bound, or unknown) and, for each seed in both groups
   where both runs reached it, the per-seed ratio.
@@ -57,11 +57,11 @@ def from_record(path: Path, method: str, threshold: float) -> list[dict[str, Any
     return runs
 
 
-def _steps(reached: float | None, budget: int | None) -> str:
-    """``"55,000"``, or ``"> 400,000"`` for a run (or median) that did not reach the threshold within ``budget``."""
+def _steps(reached: float | None, bound: float | None) -> str:
+    """``"55,000"``, or ``"> 400,000"`` for a run (or median) known only to exceed ``bound``."""
     if reached is not None:
         return f"{reached:,.0f}"
-    return "unknown" if budget is None else f"> {budget:,}"
+    return "unknown" if bound is None else f"> {bound:,.0f}"
 
 
 def main() -> None:
@@ -89,6 +89,8 @@ def main() -> None:
         g = groups[name]
         cells = [f"seed {r['seed']}: {_steps(r['steps_to_threshold'], r['steps'])}" for r in runs]
         median = _steps(g["steps_to_threshold_median"], g["steps_to_threshold_median_above"])
+        if g["steps_to_threshold_median_at_most"] is not None:
+            median += f" and <= {g['steps_to_threshold_median_at_most']:,.0f}"
         print(f"{name}: reached {g['reached']}/{g['seeds']}; median {median}; " + "; ".join(cells))
     med = ratio["median"]
     print(f"a/b, medians: {'-' if med['value'] is None else format(med['value'], '.3f')} ({med['note']})")

@@ -228,13 +228,13 @@ def test_step_ratio_counts_unfinished_runs_at_their_budget() -> None:
     assert step_ratio(pim, pim)["value"] == 1.0 and step_ratio(mfrl, pim)["value"] is None
     # medians: pim's is measured (1500); mfrl's middle run did not reach it, so its median exceeds 12,000
     assert pim["steps_to_threshold_median"] == 1500.0 and mfrl["steps_to_threshold_median"] is None
-    assert mfrl["steps_to_threshold_median_above"] == 12000
+    assert mfrl["steps_to_threshold_median_above"] == 12000 and mfrl["steps_to_threshold_median_at_most"] is None
     assert ratio["median"]["value"] == pytest.approx(0.125) and ratio["median"]["note"].startswith("upper bound")
     assert step_ratio(pim, pim)["median"]["value"] == 1.0
     assert step_ratio(mfrl, pim)["median"]["value"] is None
 
 
-def test_the_median_steps_to_threshold_is_known_when_the_middle_runs_reached_it() -> None:
+def test_the_median_steps_to_threshold_is_measured_when_the_middle_runs_reached_it() -> None:
     from pimbrl.experiments.compare import median_steps_to_threshold, step_ratio, summarize_method
 
     def runs(*pairs: tuple[int | None, int]) -> list[dict]:
@@ -242,17 +242,29 @@ def test_the_median_steps_to_threshold_is_known_when_the_middle_runs_reached_it(
             {"steps_to_threshold": s, "steps": b, "final_return": 0.0, "wall_s": 1.0, "update_to_data": 1.0} for s, b in pairs
         ]
 
+    def median(*pairs: tuple[int | None, int]) -> tuple:
+        m = median_steps_to_threshold(runs(*pairs))
+        return m["steps_to_threshold_median"], m["steps_to_threshold_median_above"], m["steps_to_threshold_median_at_most"]
+
     # four of six reached: the middle two (55,000 and 57,500) are measured, the two censored runs sort last
     six = runs((37500, 60000), (55000, 60000), (None, 60000), (57500, 60000), (32500, 60000), (None, 60000))
-    assert median_steps_to_threshold(six) == {"steps_to_threshold_median": 56250.0, "steps_to_threshold_median_above": None}
-    # three of six: the upper middle run did not reach it, so the median is only bounded below
-    half = runs((37500, 60000), (None, 60000), (None, 60000), (57500, 60000), (32500, 60000), (None, 60000))
-    assert median_steps_to_threshold(half) == {"steps_to_threshold_median": None, "steps_to_threshold_median_above": 60000}
-    # a censored run whose budget is shorter than a reached step could sort anywhere: unknown
-    short = runs((5000, 6000), (None, 4000), (3000, 6000))
-    assert median_steps_to_threshold(short) == {"steps_to_threshold_median": None, "steps_to_threshold_median_above": None}
-    assert step_ratio(summarize_method(six), summarize_method(short))["median"]["value"] is None
-    assert median_steps_to_threshold([])["steps_to_threshold_median"] is None
+    assert median_steps_to_threshold(six)["steps_to_threshold_median"] == 56250.0
+    # three of six: the median averages 57,500 and a run beyond 60,000, so it is above 58,750, unbounded above
+    assert median((37500, 60000), (None, 60000), (None, 60000), (57500, 60000), (32500, 60000), (None, 60000)) == (
+        None,
+        58750.0,
+        None,
+    )
+    # a censored run with a short budget may sort anywhere above it: here the median lies in (4,000, 5,000]
+    assert median((5000, 6000), (None, 4000), (3000, 6000)) == (None, 4000.0, 5000.0)
+    # ... or it may not matter: the median is 3,000 whatever the censored run needed beyond 4,000
+    assert median((1000, 6000), (2000, 6000), (3000, 6000), (50000, 60000), (None, 4000)) == (3000.0, None, None)
+    assert median() == (None, None, None)
+    # a's median bounded above (5,000) over b's measured one: an upper bound on the ratio
+    short = summarize_method(runs((5000, 6000), (None, 4000), (3000, 6000)))
+    ratio = step_ratio(short, summarize_method(six))["median"]
+    assert ratio["value"] == pytest.approx(5000 / 56250) and ratio["note"].startswith("upper bound")
+    assert step_ratio(summarize_method(six), short)["median"]["value"] == pytest.approx(56250 / 4000)
 
 
 @pytest.mark.parametrize("fraction", [0.0, 1.0])

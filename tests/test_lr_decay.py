@@ -28,6 +28,7 @@ def test_the_scale_is_one_until_the_start_then_linear_to_the_final_fraction() ->
     [
         ({"lr_decay_to": 0.5}, "give --lr-decay-after STEP too"),
         ({"lr_decay_after": 600}, "is not before --total-steps 600"),
+        ({"lr_decay_after": 100, "lr_decay_to": 1.0}, "keeps the learning rates constant"),
         ({"lr_decay_after": 100, "lr_decay_to": 1.5}, r"lr_decay_to must be in \[0.0, 1.0\]"),
     ],
 )

@@ -404,22 +404,28 @@ def summarize_method(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
 def median_steps_to_threshold(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The median over runs of the steps to the threshold, where runs that never reached it are censored.
 
-    A run that never reached the threshold needed more than its budget (``steps``). As long as that budget is
-    at least every step at which another run reached it, such a run sorts after all of those, so the median
-    is known exactly when the middle run(s) reached the threshold; otherwise it is only known to exceed the
-    smallest budget among the runs that did not (``steps_to_threshold_median_above``). Returns both keys,
-    one of them ``None``; both ``None`` for no runs, or where a short budget makes the order unknown.
+    A run that never reached the threshold needed more than its budget (``steps``). Counting such runs at
+    their budgets gives a lower bound on the median, counting them at infinity an upper bound; where the two
+    agree the median is measured (``steps_to_threshold_median``), else it lies above the first
+    (``steps_to_threshold_median_above``) and at most at the second where that is finite
+    (``steps_to_threshold_median_at_most``, else ``None``). All three ``None`` for no runs.
     """
-    reached = [int(r["steps_to_threshold"]) for r in mine if r["steps_to_threshold"] is not None]
-    budgets = [int(r["steps"]) for r in mine if r["steps_to_threshold"] is None]
-    out: dict[str, Any] = {"steps_to_threshold_median": None, "steps_to_threshold_median_above": None}
-    if not mine or (budgets and reached and min(budgets) < max(reached)):
+    reached = [float(r["steps_to_threshold"]) for r in mine if r["steps_to_threshold"] is not None]
+    budgets = [float(r["steps"]) for r in mine if r["steps_to_threshold"] is None]
+    out: dict[str, Any] = {
+        "steps_to_threshold_median": None,
+        "steps_to_threshold_median_above": None,
+        "steps_to_threshold_median_at_most": None,
+    }
+    if not mine:
         return out
-    median = float(np.median([*map(float, reached), *[math.inf] * len(budgets)]))
-    if math.isfinite(median):
-        out["steps_to_threshold_median"] = median
+    low = float(np.median(reached + budgets))
+    high = float(np.median(reached + [math.inf] * len(budgets)))
+    if low == high:
+        out["steps_to_threshold_median"] = low
     else:
-        out["steps_to_threshold_median_above"] = min(budgets)
+        out["steps_to_threshold_median_above"] = low
+        out["steps_to_threshold_median_at_most"] = high if math.isfinite(high) else None
     return out
 
 
@@ -428,8 +434,9 @@ def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
 
     Where some runs of b never reached the threshold, they count at their budget, which makes the ratio
     an upper bound. The ratio of the medians (``median``, see :func:`median_steps_to_threshold`) is a
-    measurement where both medians are known, an upper bound where only b's is censored (b's median is
-    above its budget), and ``None`` where a's is censored.
+    measurement where both medians are measured; an upper bound (a's measured median or its upper bound,
+    over b's measured median or its lower bound) where either is censored; ``None`` where a's median has
+    no upper bound (its middle run did not reach the threshold).
     """
     result: dict[str, Any]
     if a["steps_to_threshold_mean"] is None:
@@ -442,18 +449,20 @@ def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     else:
         result = {"value": a["steps_to_threshold_mean"] / b["steps_to_threshold_mean"], "note": "mean over seeds"}
     a_med, b_med = a.get("steps_to_threshold_median"), b.get("steps_to_threshold_median")
-    b_above = b.get("steps_to_threshold_median_above")
-    if a_med is None:
-        median = {"value": None, "note": "pimbrl's median run did not reach the threshold"}
-    elif b_med is not None:
+    a_high = a_med if a_med is not None else a.get("steps_to_threshold_median_at_most")
+    b_low = b_med if b_med is not None else b.get("steps_to_threshold_median_above")
+    if a_med is not None and b_med is not None:
         median = {"value": a_med / b_med, "note": "ratio of the medians over seeds"}
-    elif b_above is not None:
-        median = {
-            "value": a_med / b_above,
-            "note": f"upper bound: the median run of the other method did not reach it within {b_above:,} steps",
-        }
+    elif a_high is None:
+        median = {"value": None, "note": "the first method's median run did not reach the threshold: no upper bound"}
+    elif b_low is None:
+        median = {"value": None, "note": "the second method has no runs"}
     else:
-        median = {"value": None, "note": "the other method's median is unknown (budgets shorter than its steps to the threshold)"}
+        why = "the other method's median run did not reach it" if b_med is None else "the first method's median is censored"
+        median = {
+            "value": a_high / b_low,
+            "note": f"upper bound on the ratio of the medians ({why}; runs that did not reach it counted at their budgets)",
+        }
     result["median"] = median
     return result
 

@@ -646,6 +646,8 @@ def check_lr_decay(cfg: TrainConfig) -> None:
         if cfg.lr_decay_to != TrainConfig().lr_decay_to:
             raise ConfigError("--lr-decay-to sets where the decay ends; give --lr-decay-after STEP too (the step it starts)")
         return
+    if cfg.lr_decay_to == 1.0:
+        raise ConfigError("--lr-decay-to 1 keeps the learning rates constant; give a fraction below 1, or drop --lr-decay-after")
     if cfg.lr_decay_after >= cfg.total_steps:
         raise ConfigError(
             f"--lr-decay-after {cfg.lr_decay_after:,} is not before --total-steps {cfg.total_steps:,}: the rates would "

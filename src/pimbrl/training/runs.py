@@ -30,7 +30,9 @@ def extend_run(path: str | Path, total_steps: int) -> None:
     summary is dropped and written anew at the new end). The run continues from its final checkpoint; where
     the old end is an episode boundary it makes exactly the steps of a run given the larger budget from the
     start (tested), where it falls inside an episode it starts a new one there (checkpoints do not hold an
-    episode in progress). The real buffer, sized to the old budget, grows to the new one.
+    episode in progress). The real buffer, sized to the old budget, grows to the new one. A learning-rate
+    decay (``lr_decay_after``) ends at ``total_steps``, so past its start the extended run's rates follow the
+    new, longer line and are not those of a run given the larger budget from the start.
 
     Raises:
         ConfigError: if ``total_steps`` is not larger than the run's, or beyond the allowed maximum.
