@@ -234,6 +234,11 @@ class Run:
             selected_return_mean=None if selector is None else selector.best_test_return,
         )
 
+    def lr_scale(self) -> float | None:
+        """The learning rates' fraction of their configured values at this step (``None``: no decay configured)."""
+        cfg = self.cfg
+        return None if cfg.lr_decay_after is None else lr_scale(self.t, cfg.lr_decay_after, cfg.total_steps, cfg.lr_decay_to)
+
     def counters(self) -> dict[str, Any]:
         """The counters of a ``metrics.csv`` row."""
         row: dict[str, Any] = {
@@ -242,8 +247,9 @@ class Run:
             "update_to_data": self.agent.n_updates / max(self.t, 1),
             "real_buffer": len(self.real),
         }
-        if self.cfg.lr_decay_after is not None:
-            row["lr_scale"] = lr_scale(self.t, self.cfg.lr_decay_after, self.cfg.total_steps, self.cfg.lr_decay_to)
+        scale = self.lr_scale()
+        if scale is not None:
+            row["lr_scale"] = scale
         if self.model is not None:
             row.update(self.model.metric_row())
         return row
@@ -291,8 +297,9 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
                     run.model.phase(run.real, run.agent, run.t, log.last_eval, log.timed, log.message)
                     event("model_phase", run)
                 with log.timed("agent_update"):
-                    if cfg.lr_decay_after is not None:
-                        run.agent.set_lr_scale(lr_scale(run.t, cfg.lr_decay_after, cfg.total_steps, cfg.lr_decay_to))
+                    scale = run.lr_scale()
+                    if scale is not None:
+                        run.agent.set_lr_scale(scale)
                     for _ in range(run.schedule.take()):
                         size = cfg.agent_config.batch_size
                         if run.model is not None:
