@@ -26,7 +26,14 @@ configuration is refused (``--rerun`` moves it aside). Prints and records (``--n
 mean return over the evaluations after the warm-up, the model's held-out error at each evaluation and, for
 the variants that learn coefficients, the identified values and the first real step from which they stay
 within 5 % of the truth. ``--figure`` draws the returns and the model errors per variant (mean over seeds,
-band: the seeds' range).
+band: the seeds' range). Per variant and threshold the summary gives the mean steps (where every seed reached
+it) and the median over the seeds, censored where some did not (see
+:func:`pimbrl.experiments.compare.median_steps_to_threshold`).
+
+``--include RECORD`` adds the runs of an earlier record of the same study (same system, prior, budget and
+flags; its run directories may be gone) to the summary, for the variants asked: a study extended with more
+seeds. Where a variant and seed were both recorded and run here, the fresh run is kept and the two are
+compared evaluation by evaluation (a reproduction check of the current code against the record's).
 
 Usage, e.g.::
 
@@ -46,7 +53,7 @@ import _common
 
 from pimbrl.cli import config_warnings
 from pimbrl.config import parse_prior
-from pimbrl.experiments.compare import RunSpec, check_reuse, run_all
+from pimbrl.experiments.compare import RunSpec, check_reuse, median_steps_to_threshold, run_all
 from pimbrl.models.coefficients import CORRECTION_OF
 from pimbrl.training import RunDirectory
 from pimbrl.training.cli_args import config_from_argv
@@ -109,6 +116,96 @@ def identified_within(history: list[dict], truth: dict[str, float], tolerance: f
         elif not ok:
             first = None
     return first
+
+
+#: the fields of a record that must agree for its runs to join another invocation's (``--include``)
+SAME_STUDY = ("env", "true", "prior", "learn", "steps", "extra_flags", "pimbrl_flags")
+
+
+def load_included(path: Path, study: dict, thresholds: list[float]) -> list[dict]:
+    """The runs of an earlier record of the same study, with their step keys as integers again.
+
+    Exits with a one-line message where the record is of another study (the first field that differs) or
+    lacks one of ``thresholds``.
+    """
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise SystemExit(f"--include {path}: cannot read it as a JSON record ({exc})") from None
+    for key in SAME_STUDY:
+        if record.get(key) != study[key]:
+            raise SystemExit(
+                f"--include {path}: a record of another study ({key} {record.get(key)!r} there, {study[key]!r} "
+                "here); include only records made with the same system, prior, budget and flags"
+            )
+    missing = [t for t in thresholds if t not in record.get("thresholds", [])]
+    if missing:
+        raise SystemExit(
+            f"--include {path}: the record has no steps to {', '.join(f'{t:g}' for t in missing)}; "
+            f"ask only for its thresholds ({', '.join(f'{t:g}' for t in record.get('thresholds', []))})"
+        )
+    rows = record.get("runs", [])
+    for row in rows:  # JSON turned the {step: value} keys into strings
+        for key in ("model_val_mse", "returns_after_warmup", "model_val_mse_after_warmup"):
+            row[key] = {int(k): v for k, v in row.get(key, {}).items()}
+    return rows
+
+
+def merge_runs(fresh: list[dict], included: list[dict], variants: list[str]) -> tuple[list[dict], list[str]]:
+    """The fresh runs plus the included runs of ``variants`` that were not run here, ordered by seed.
+
+    Returns them with one line per run found in both: whether the fresh run reproduces the recorded one
+    (every evaluation after the warm-up equal) or by how much its returns differ.
+    """
+    done = {(r["variant"], r["seed"]): r for r in fresh}
+    merged = list(fresh)
+    checks = []
+    for row in included:
+        key = (row["variant"], row["seed"])
+        if row["variant"] not in variants:
+            continue
+        if key not in done:
+            merged.append(row)
+            done[key] = row
+            continue
+        new, old = done[key]["returns_after_warmup"], row["returns_after_warmup"]
+        shared = sorted(set(new) & set(old))
+        gap = max((abs(new[s] - old[s]) for s in shared), default=None)
+        if gap is None:
+            checks.append(f"{key[0]} seed {key[1]}: no evaluation in common with the record")
+        elif gap == 0.0:
+            checks.append(f"{key[0]} seed {key[1]}: reproduces the record (all {len(shared)} evaluations equal)")
+        else:
+            checks.append(
+                f"{key[0]} seed {key[1]}: differs from the record (largest return difference {gap:.4g} "
+                f"over {len(shared)} evaluations); the fresh run is kept"
+            )
+    merged.sort(key=lambda r: (r["seed"], variants.index(r["variant"]) if r["variant"] in variants else 0))
+    return merged, checks
+
+
+def summarise(rows: list[dict], variants: list[str], thresholds: list[float]) -> dict[str, dict]:
+    """Per variant: the seeds, the steps to each threshold per seed, their mean where every seed reached it,
+    their median over the seeds (censored at the run's budget where a seed did not reach it), the final
+    returns and the mean returns after the warm-up."""
+    summary = {}
+    for variant in variants:
+        mine = [r for r in rows if r["variant"] == variant]
+        entry: dict = {"seeds": len(mine), "seed_list": [r["seed"] for r in mine]}
+        for t in thresholds:
+            steps = [r[f"steps_to_{t:g}"] for r in mine]
+            reached = [s for s in steps if s is not None]
+            entry[f"steps_to_{t:g}"] = steps
+            entry[f"mean_steps_to_{t:g}"] = statistics.mean(reached) if len(reached) == len(steps) and steps else None
+            median = median_steps_to_threshold(
+                [{"steps_to_threshold": s, "steps": r["steps"]} for s, r in zip(steps, mine, strict=True)]
+            )
+            entry[f"median_steps_to_{t:g}"] = median["steps_to_threshold_median"]
+            entry[f"median_steps_to_{t:g}_above"] = median["steps_to_threshold_median_above"]
+        entry["final_return"] = [r["final_return"] for r in mine]
+        entry["mean_return_after_warmup"] = [r["mean_return_after_warmup"] for r in mine]
+        summary[variant] = entry
+    return summary
 
 
 def model_errors(run: RunDirectory, eval_steps: list[int]) -> dict[int, float]:
@@ -198,6 +295,11 @@ def main() -> None:
     parser.add_argument(
         "--figure", default=None, help="draw the learning curves here: per variant, the seeds' mean and their range"
     )
+    parser.add_argument(
+        "--include",
+        default="",
+        help="comma-separated records of the same study (benchmarks/results/<name>.json) whose runs join the summary",
+    )
     args, extra = parser.parse_known_args()
     extra = [a for a in extra if a != "--"]
     truth = parse_prior(args.true)
@@ -226,6 +328,17 @@ def main() -> None:
     warnings = {line for spec in specs for line in config_warnings(spec.config) if not line.startswith("threshold ")}
     for line in sorted(warnings):
         print(f"warning: {line}")
+    study = {
+        "env": args.env,
+        "true": args.true,
+        "prior": args.prior,
+        "learn": args.learn,
+        "steps": args.steps,
+        "extra_flags": extra,
+        "pimbrl_flags": shlex.split(args.pimbrl_args),
+    }
+    # read the earlier records before any run, so that a wrong one is refused before hours of training
+    included = {Path(p): load_included(Path(p), study, thresholds) for p in args.include.split(",") if p}
     check_reuse(specs, rerun=args.rerun and not args.no_run)
     if not args.no_run:
         run_all(specs, jobs=args.jobs)
@@ -261,23 +374,17 @@ def main() -> None:
             row["relative_error"] = {k: abs(v - truth[k]) / abs(truth[k]) for k, v in current.items() if k in truth}
             row["within_5pct_from_step"] = identified_within(coefficients["history"], truth)
         rows.append(row)
-    summary = {}
+    for path, earlier in included.items():
+        rows, checks = merge_runs(rows, earlier, variants)
+        for line in checks:
+            print(f"{path.name}: {line}")
+    summary = summarise(rows, variants, thresholds)
     width = max(len(v) for v in variants)
-    for variant in variants:
-        mine = [r for r in rows if r["variant"] == variant]
-        entry: dict = {"seeds": len(mine)}
-        for t in thresholds:
-            steps = [r[f"steps_to_{t:g}"] for r in mine]
-            reached = [s for s in steps if s is not None]
-            entry[f"steps_to_{t:g}"] = steps
-            entry[f"mean_steps_to_{t:g}"] = statistics.mean(reached) if len(reached) == len(steps) and steps else None
-        entry["final_return"] = [r["final_return"] for r in mine]
-        entry["mean_return_after_warmup"] = [r["mean_return_after_warmup"] for r in mine]
-        summary[variant] = entry
+    for variant, entry in summary.items():
         line = "  ".join(f"to {t:g}: {entry[f'steps_to_{t:g}']}" for t in thresholds)
         final = [round(x, 2) for x in entry["final_return"] if x is not None]
         area = [round(x, 2) for x in entry["mean_return_after_warmup"] if x is not None]
-        print(f"{variant:>{width}}  {line}  final {final}  mean after warm-up {area}")
+        print(f"{variant:>{width}}  seeds {entry['seed_list']}  {line}  final {final}  mean after warm-up {area}")
     print("model held-out MSE, mean over the seeds (at the steps every seed reached):")
     for variant in variants:
         curve = seed_range(variant, [r["model_val_mse"] for r in rows if r["variant"] == variant])
@@ -293,14 +400,9 @@ def main() -> None:
     if args.figure:
         draw(rows, variants, thresholds, Path(args.figure), f"{args.env}: true {args.true}, prior {args.prior}")
     payload = {
-        "env": args.env,
-        "true": args.true,
-        "prior": args.prior,
-        "learn": args.learn,
-        "steps": args.steps,
+        **study,
         "thresholds": thresholds,
-        "extra_flags": extra,
-        "pimbrl_flags": shlex.split(args.pimbrl_args),
+        "included": [str(p) for p in included],
         "runs": rows,
         "summary": summary,
     }
