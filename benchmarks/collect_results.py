@@ -14,6 +14,8 @@ import shutil
 import sys
 from pathlib import Path
 
+from pimbrl.experiments.compare import ratio_lines
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -42,13 +44,7 @@ def compare_table(summary: dict) -> str:
         )
     if summary["ratios"]:
         rows.append("")
-    for name, r in summary["ratios"].items():
-        value = "—" if r["value"] is None else f"{r['value']:.3f}"
-        rows.append(f"{name}: {value} ({r['note']})  ")
-        median = r.get("median")
-        if median is not None:
-            value = "—" if median["value"] is None else f"{median['value']:.3f}"
-            rows.append(f"{name}, medians: {value} ({median['note']})  ")
+    rows += [f"{line}  " for line in ratio_lines(summary["ratios"], missing="—")]  # two spaces: a Markdown break
     return "\n".join(rows)
 
 

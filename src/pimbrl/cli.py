@@ -349,7 +349,7 @@ def _seed_list(text: str) -> list[int]:
 
 
 def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
-    from .experiments.compare import compare, plan_runs
+    from .experiments.compare import compare, plan_runs, ratio_lines
     from .simulate import resolve_env_id
     from .training.cli_args import parse_train_args
 
@@ -390,13 +390,8 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
             f"{m['steps_to_threshold']}  final {m['final_return_mean']:.3f}  updates/step {m['update_to_data']:.2f}  "
             f"wall {m['wall_s_mean']:.0f} s"
         )
-    for name, r in result["ratios"].items():
-        value = "-" if r["value"] is None else f"{r['value']:.3f}"
-        print(f"  steps ratio {name}: {value} ({r['note']})")
-        median = r.get("median")
-        if median is not None:
-            value = "-" if median["value"] is None else f"{median['value']:.3f}"
-            print(f"  steps ratio {name}, medians: {value} ({median['note']})")
+    for line in ratio_lines(result["ratios"]):
+        print(f"  steps ratio {line}")
     if result["failed"]:
         print(f"failed runs: {', '.join(result['failed'])}", file=sys.stderr)
         return 1

@@ -467,6 +467,20 @@ def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
+def ratio_lines(ratios: dict[str, dict[str, Any]], missing: str = "-") -> list[str]:
+    """One line per ratio of a summary (``name: value (note)``), each followed by its ratio of the medians.
+
+    ``missing`` stands for a ratio that is unknown (``-`` on a terminal, ``—`` in Markdown).
+    """
+    lines = []
+    for name, r in ratios.items():
+        for label, ratio in ((name, r), (f"{name}, medians", r.get("median"))):
+            if ratio is not None:
+                value = missing if ratio["value"] is None else f"{ratio['value']:.3f}"
+                lines.append(f"{label}: {value} ({ratio['note']})")
+    return lines
+
+
 def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
     """``summary.csv``, ``summary.json`` and ``curves.png`` in ``root``."""
     lines = ["method,seed,steps_to_threshold,wall_s_to_threshold,final_return,best_return,wall_s,updates,update_to_data"]
