@@ -151,37 +151,62 @@ def load_included(path: Path, study: dict, thresholds: list[float]) -> list[dict
     return rows
 
 
-def merge_runs(fresh: list[dict], included: list[dict], variants: list[str]) -> tuple[list[dict], list[str]]:
-    """The fresh runs plus the included runs of ``variants`` that were not run here, ordered by seed.
+def merge_runs(fresh: list[dict], included: dict[str, list[dict]], variants: list[str]) -> tuple[list[dict], list[str]]:
+    """The runs of this invocation plus the included records' runs of ``variants``, ordered by seed.
 
-    Returns them with one line per run found in both: whether the fresh run reproduces the recorded one
-    (every evaluation after the warm-up equal) or by how much its returns differ.
+    ``included`` maps each record's name to its runs. A variant and seed found in more than one place is
+    kept once: the run of this invocation if it went as far as the recorded one (else the recorded run,
+    so that a run still under way never replaces a finished one), and among records the first record's.
+    Returns the runs and one line per such duplicate: whether the two agree at every evaluation after the
+    warm-up they share or by how much their returns differ. Only a run trained in a new ``--out-dir``
+    makes this a reproduction check; a run directory that the record was made from agrees with it by
+    construction, and is named as such where both know their directory.
     """
-    done = {(r["variant"], r["seed"]): r for r in fresh}
-    merged = list(fresh)
+    kept = {(r["variant"], r["seed"]): (r, "this invocation") for r in fresh}
     checks = []
-    for row in included:
-        key = (row["variant"], row["seed"])
-        if row["variant"] not in variants:
-            continue
-        if key not in done:
-            merged.append(row)
-            done[key] = row
-            continue
-        new, old = done[key]["returns_after_warmup"], row["returns_after_warmup"]
-        shared = sorted(set(new) & set(old))
-        gap = max((abs(new[s] - old[s]) for s in shared), default=None)
-        if gap is None:
-            checks.append(f"{key[0]} seed {key[1]}: no evaluation in common with the record")
-        elif gap == 0.0:
-            checks.append(f"{key[0]} seed {key[1]}: reproduces the record (all {len(shared)} evaluations equal)")
-        else:
-            checks.append(
-                f"{key[0]} seed {key[1]}: differs from the record (largest return difference {gap:.4g} "
-                f"over {len(shared)} evaluations); the fresh run is kept"
-            )
-    merged.sort(key=lambda r: (r["seed"], variants.index(r["variant"]) if r["variant"] in variants else 0))
+    for name, rows in included.items():
+        for row in rows:
+            key = (row["variant"], row["seed"])
+            if row["variant"] not in variants:
+                continue
+            if key not in kept:
+                kept[key] = (row, name)
+                continue
+            other, where = kept[key]
+            label = f"{key[0]} seed {key[1]}"
+            if where == "this invocation" and other["steps"] < row["steps"]:
+                kept[key] = (row, name)
+                checks.append(
+                    f"{label}: the run here has {other['steps']:,} steps, {name} has {row['steps']:,}: the recorded run is kept"
+                )
+                continue
+            new, old = other["returns_after_warmup"], row["returns_after_warmup"]
+            shared = sorted(set(new) & set(old))
+            gap = max((abs(new[s] - old[s]) for s in shared), default=None)
+            same_dir = other.get("run_dir") is not None and other.get("run_dir") == row.get("run_dir")
+            if gap is None:
+                verdict = f"no evaluation in common with {name}"
+            elif gap == 0.0:
+                verdict = f"equal to {name}'s at all {len(shared)} evaluations" + (
+                    " (the same run directory: not a reproduction check)" if same_dir else ""
+                )
+            else:
+                verdict = f"differs from {name}'s (largest return difference {gap:.4g} over {len(shared)} evaluations)"
+            checks.append(f"{label}: {verdict}; the run of {where} is kept")
+    merged = [row for row, _ in kept.values()]
+    merged.sort(key=lambda r: (r["seed"], variants.index(r["variant"])))
     return merged, checks
+
+
+def median_text(entry: dict, threshold: float) -> str:
+    """A variant's median steps to ``threshold`` as measured or bounded (see :func:`summarise`)."""
+    key = f"median_steps_to_{threshold:g}"
+    if entry[key] is not None:
+        return f"{entry[key]:,.0f}"
+    if entry[f"{key}_above"] is None:
+        return "-"
+    at_most = entry[f"{key}_at_most"]
+    return f"> {entry[f'{key}_above']:,.0f}" + ("" if at_most is None else f", <= {at_most:,.0f}")
 
 
 def summarise(rows: list[dict], variants: list[str], thresholds: list[float]) -> dict[str, dict]:
@@ -202,6 +227,7 @@ def summarise(rows: list[dict], variants: list[str], thresholds: list[float]) ->
             )
             entry[f"median_steps_to_{t:g}"] = median["steps_to_threshold_median"]
             entry[f"median_steps_to_{t:g}_above"] = median["steps_to_threshold_median_above"]
+            entry[f"median_steps_to_{t:g}_at_most"] = median["steps_to_threshold_median_at_most"]
         entry["final_return"] = [r["final_return"] for r in mine]
         entry["mean_return_after_warmup"] = [r["mean_return_after_warmup"] for r in mine]
         summary[variant] = entry
@@ -354,6 +380,7 @@ def main() -> None:
             "seed": spec.seed,
             "steps": int(evaluations[-1]["step"]) if evaluations else 0,
             "finished": run.status == "finished",
+            "run_dir": str(spec.path.resolve()),
             **{f"steps_to_{t:g}": steps_to_threshold(evaluations, t) for t in thresholds},
             "final_return": returns[-1] if returns else None,
             "best_return": max(returns) if returns else None,
@@ -374,10 +401,9 @@ def main() -> None:
             row["relative_error"] = {k: abs(v - truth[k]) / abs(truth[k]) for k, v in current.items() if k in truth}
             row["within_5pct_from_step"] = identified_within(coefficients["history"], truth)
         rows.append(row)
-    for path, earlier in included.items():
-        rows, checks = merge_runs(rows, earlier, variants)
-        for line in checks:
-            print(f"{path.name}: {line}")
+    rows, checks = merge_runs(rows, {path.name: earlier for path, earlier in included.items()}, variants)
+    for line in checks:
+        print(line)
     summary = summarise(rows, variants, thresholds)
     width = max(len(v) for v in variants)
     for variant, entry in summary.items():
@@ -385,6 +411,9 @@ def main() -> None:
         final = [round(x, 2) for x in entry["final_return"] if x is not None]
         area = [round(x, 2) for x in entry["mean_return_after_warmup"] if x is not None]
         print(f"{variant:>{width}}  seeds {entry['seed_list']}  {line}  final {final}  mean after warm-up {area}")
+    print("median steps over the seeds (> N: the middle seeds did not all reach it within N; <= M: an upper bound):")
+    for variant, entry in summary.items():
+        print(f"{variant:>{width}}  " + "  ".join(f"to {t:g}: {median_text(entry, t)}" for t in thresholds))
     print("model held-out MSE, mean over the seeds (at the steps every seed reached):")
     for variant in variants:
         curve = seed_range(variant, [r["model_val_mse"] for r in rows if r["variant"] == variant])

@@ -73,8 +73,11 @@ def test_included_runs_join_the_summary_with_censored_medians(tmp_path) -> None:
     assert out.returncode == 0, out.stderr
     assert "mbrl  seeds [0, 1, 2]  to -900: [3000, None, 5000]" in out.stdout
     assert "physics-true  seeds [0]  to -900: [2000]" in out.stdout
+    assert "        mbrl  to -900: 5,000" in out.stdout  # the median line: the middle seed reached -900 at 5,000
     summary = _module().summarise(
-        _module().merge_runs([], [*rows], ["mbrl", "physics-true"])[0], ["mbrl", "physics-true"], [-900.0]
+        _module().merge_runs([], {"r": [_as_loaded(r) for r in rows]}, ["mbrl", "physics-true"])[0],
+        ["mbrl", "physics-true"],
+        [-900.0],
     )
     # one seed of three did not reach -900 within 12,000: no mean, but the median is the middle reached seed
     assert summary["mbrl"]["mean_steps_to_-900"] is None
@@ -82,17 +85,55 @@ def test_included_runs_join_the_summary_with_censored_medians(tmp_path) -> None:
     assert summary["physics-true"]["median_steps_to_-900"] == 2000
 
 
+def _as_loaded(row: dict) -> dict:  # as load_included returns a recorded run: integer step keys
+    return {**row, "returns_after_warmup": {int(k): v for k, v in row["returns_after_warmup"].items()}}
+
+
 def test_a_run_both_recorded_and_run_here_is_compared_and_the_fresh_one_kept() -> None:
     module = _module()
-    old = [_row("mbrl", 0, 3000, {2000: -950.0, 3000: -880.0}), _row("mbrl", 1, 3000, {2000: -950.0, 3000: -880.0})]
-    for row in old:  # as load_included returns them
-        row["returns_after_warmup"] = {int(k): v for k, v in row["returns_after_warmup"].items()}
-    same = {**old[0], "returns_after_warmup": {2000: -950.0, 3000: -880.0}}
+    old = [_as_loaded(_row("mbrl", s, 3000, {2000: -950.0, 3000: -880.0})) for s in (0, 1)]
+    same = {**old[0]}
     other = {**old[1], "returns_after_warmup": {2000: -950.0, 3000: -879.5}, "steps_to_-900": 2000}
-    merged, checks = module.merge_runs([same, other], old, ["mbrl"])
+    merged, checks = module.merge_runs([same, other], {"first.json": old}, ["mbrl"])
     assert len(merged) == 2 and merged[1]["steps_to_-900"] == 2000
-    assert checks[0] == "mbrl seed 0: reproduces the record (all 2 evaluations equal)"
-    assert checks[1].startswith("mbrl seed 1: differs from the record (largest return difference 0.5 over 2")
+    assert checks[0] == "mbrl seed 0: equal to first.json's at all 2 evaluations; the run of this invocation is kept"
+    assert checks[1].startswith("mbrl seed 1: differs from first.json's (largest return difference 0.5 over 2")
+    # the run directory the record was made from agrees with it by construction: said so
+    mine = {**same, "run_dir": "/runs/mbrl/seed0"}
+    _, checks = module.merge_runs([mine], {"first.json": [{**old[0], "run_dir": "/runs/mbrl/seed0"}]}, ["mbrl"])
+    assert checks[0].endswith("(the same run directory: not a reproduction check); the run of this invocation is kept")
+
+
+def test_a_run_still_under_way_never_replaces_a_longer_recorded_one() -> None:
+    module = _module()
+    recorded = _as_loaded(_row("mbrl", 0, 6000, {2000: -950.0, 3000: -880.0}))
+    cut = {**recorded, "steps": 3000, "finished": False, "steps_to_-900": None}
+    merged, checks = module.merge_runs([cut], {"first.json": [recorded]}, ["mbrl"])
+    assert merged == [recorded]
+    assert checks == ["mbrl seed 0: the run here has 3,000 steps, first.json has 12,000: the recorded run is kept"]
+    # a run in two records is kept once, from the first; another variant's runs are left out
+    again = {**recorded, "returns_after_warmup": {2000: -951.0}}
+    other = _as_loaded(_row("pimbrl-true", 0, 3000, {2000: -900.0}))
+    merged, checks = module.merge_runs([], {"a.json": [recorded], "b.json": [again, other]}, ["mbrl"])
+    assert merged == [recorded]
+    assert checks == [
+        "mbrl seed 0: differs from b.json's (largest return difference 1 over 1 evaluations); the run of a.json is kept"
+    ]
+
+
+def test_a_wrong_record_is_refused_before_any_run(tmp_path, monkeypatch, capsys) -> None:
+    module = _module()
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a run started before the record was checked")
+
+    monkeypatch.setattr(module, "run_all", no_training)
+    monkeypatch.setattr(module, "check_reuse", no_training)
+    record = _record(tmp_path / "other.json", [], steps=6000)
+    argv = [*STUDY, "--thresholds=-900", "--out-dir", str(tmp_path / "runs"), "--include", str(record)]
+    monkeypatch.setattr(sys, "argv", ["run_partial_physics.py", *argv])
+    with pytest.raises(SystemExit, match="a record of another study \\(steps 6000 there, 12000 here\\)"):
+        module.main()
 
 
 @pytest.mark.parametrize(
@@ -107,7 +148,6 @@ def test_a_record_of_another_study_is_refused(tmp_path, change: dict, message: s
     record = _record(tmp_path / "other.json", [_row("mbrl", 0, 3000, {2000: -950.0})], **change)
     out = _script(*STUDY, "--thresholds=-900", "--out-dir", str(tmp_path / "runs"), "--no-run", "--include", str(record))
     assert out.returncode != 0 and message in out.stderr
-    assert not (tmp_path / "runs").exists()  # refused before anything was written
 
 
 def test_an_unreadable_record_is_refused(tmp_path) -> None:
