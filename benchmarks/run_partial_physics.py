@@ -132,6 +132,7 @@ def load_included(path: Path, study: dict, thresholds: list[float]) -> list[dict
         record = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise SystemExit(f"--include {path}: cannot read it as a JSON record ({exc})") from None
+    record.setdefault("pimbrl_flags", [])  # records made before --pimbrl-args existed had none
     for key in SAME_STUDY:
         if record.get(key) != study[key]:
             raise SystemExit(
@@ -229,7 +230,7 @@ def summarise(rows: list[dict], variants: list[str], thresholds: list[float]) ->
             entry[f"median_steps_to_{t:g}_above"] = median["steps_to_threshold_median_above"]
             entry[f"median_steps_to_{t:g}_at_most"] = median["steps_to_threshold_median_at_most"]
         entry["final_return"] = [r["final_return"] for r in mine]
-        entry["mean_return_after_warmup"] = [r["mean_return_after_warmup"] for r in mine]
+        entry["mean_return_after_warmup"] = [r.get("mean_return_after_warmup") for r in mine]  # older records lack it
         summary[variant] = entry
     return summary
 
