@@ -53,7 +53,7 @@ import _common
 
 from pimbrl.cli import config_warnings
 from pimbrl.config import parse_prior
-from pimbrl.experiments.compare import RunSpec, check_reuse, median_steps_to_threshold, run_all
+from pimbrl.experiments.compare import RunSpec, check_reuse, median_steps_to_threshold, run_all, steps_text
 from pimbrl.models.coefficients import CORRECTION_OF
 from pimbrl.training import RunDirectory
 from pimbrl.training.cli_args import config_from_argv
@@ -197,17 +197,6 @@ def merge_runs(fresh: list[dict], included: dict[str, list[dict]], variants: lis
     merged = [row for row, _ in kept.values()]
     merged.sort(key=lambda r: (r["seed"], variants.index(r["variant"])))
     return merged, checks
-
-
-def median_text(entry: dict, threshold: float) -> str:
-    """A variant's median steps to ``threshold`` as measured or bounded (see :func:`summarise`)."""
-    key = f"median_steps_to_{threshold:g}"
-    if entry[key] is not None:
-        return f"{entry[key]:,.0f}"
-    if entry[f"{key}_above"] is None:
-        return "-"
-    at_most = entry[f"{key}_at_most"]
-    return f"> {entry[f'{key}_above']:,.0f}" + ("" if at_most is None else f", <= {at_most:,.0f}")
 
 
 def summarise(rows: list[dict], variants: list[str], thresholds: list[float]) -> dict[str, dict]:
@@ -412,9 +401,13 @@ def main() -> None:
         final = [round(x, 2) for x in entry["final_return"] if x is not None]
         area = [round(x, 2) for x in entry["mean_return_after_warmup"] if x is not None]
         print(f"{variant:>{width}}  seeds {entry['seed_list']}  {line}  final {final}  mean after warm-up {area}")
-    print("median steps over the seeds (> N: the middle seeds did not all reach it within N; <= M: an upper bound):")
+    print("median steps over the seeds (> N: the middle seeds did not all reach it within N; and <= M: an upper bound):")
     for variant, entry in summary.items():
-        print(f"{variant:>{width}}  " + "  ".join(f"to {t:g}: {median_text(entry, t)}" for t in thresholds))
+        cells = []
+        for t in thresholds:
+            key = f"median_steps_to_{t:g}"
+            cells.append(f"to {t:g}: {steps_text(entry[key], entry[f'{key}_above'], entry[f'{key}_at_most'])}")
+        print(f"{variant:>{width}}  " + "  ".join(cells))
     print("model held-out MSE, mean over the seeds (at the steps every seed reached):")
     for variant in variants:
         curve = seed_range(variant, [r["model_val_mse"] for r in rows if r["variant"] == variant])

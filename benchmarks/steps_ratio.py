@@ -27,7 +27,7 @@ from typing import Any
 
 import _common
 
-from pimbrl.experiments.compare import step_ratio, summarize_method
+from pimbrl.experiments.compare import step_ratio, steps_text, summarize_method
 from pimbrl.training import RunDirectory
 
 
@@ -57,13 +57,6 @@ def from_record(path: Path, method: str, threshold: float) -> list[dict[str, Any
     return runs
 
 
-def _steps(reached: float | None, bound: float | None) -> str:
-    """``"55,000"``, or ``"> 400,000"`` for a run (or median) known only to exceed ``bound``."""
-    if reached is not None:
-        return f"{reached:,.0f}"
-    return "unknown" if bound is None else f"> {bound:,.0f}"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--a", nargs="+", type=Path, required=True, help="run directories of the first group")
@@ -87,10 +80,10 @@ def main() -> None:
     }
     for name, runs in (("a", a), ("b", b)):
         g = groups[name]
-        cells = [f"seed {r['seed']}: {_steps(r['steps_to_threshold'], r['steps'])}" for r in runs]
-        median = _steps(g["steps_to_threshold_median"], g["steps_to_threshold_median_above"])
-        if g["steps_to_threshold_median_at_most"] is not None:
-            median += f" and <= {g['steps_to_threshold_median_at_most']:,.0f}"
+        cells = [f"seed {r['seed']}: {steps_text(r['steps_to_threshold'], r['steps'])}" for r in runs]
+        median = steps_text(
+            g["steps_to_threshold_median"], g["steps_to_threshold_median_above"], g["steps_to_threshold_median_at_most"]
+        )
         print(f"{name}: reached {g['reached']}/{g['seeds']}; median {median}; " + "; ".join(cells))
     med = ratio["median"]
     print(f"a/b, medians: {'-' if med['value'] is None else format(med['value'], '.3f')} ({med['note']})")

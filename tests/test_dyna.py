@@ -213,7 +213,7 @@ def test_small_pool_is_used(ks_small_pools) -> None:
 
 
 def test_step_ratio_counts_unfinished_runs_at_their_budget() -> None:
-    from pimbrl.experiments.compare import ratio_lines, step_ratio, summarize_method
+    from pimbrl.experiments.compare import ratio_lines, step_ratio, steps_text, summarize_method
 
     def run(steps_to: int | None, steps: int) -> dict:
         return {"steps_to_threshold": steps_to, "steps": steps, "final_return": 0.0, "wall_s": 1.0, "update_to_data": 1.0}
@@ -232,6 +232,9 @@ def test_step_ratio_counts_unfinished_runs_at_their_budget() -> None:
     assert ratio["median"]["value"] == pytest.approx(0.125) and ratio["median"]["note"].startswith("upper bound")
     assert step_ratio(pim, pim)["median"]["value"] == 1.0
     assert step_ratio(mfrl, pim)["median"]["value"] is None
+    # steps as measured or bounded, for a run or a censored median (steps_ratio.py, run_partial_physics.py)
+    assert steps_text(1500.0, None) == "1,500" and steps_text(None, 12000) == "> 12,000"
+    assert steps_text(None, 50000, 60000) == "> 50,000 and <= 60,000" and steps_text(None, None) == "unknown"
     # the lines `pimbrl compare` prints and collect_results.py writes: each ratio, then its ratio of the medians
     lines = ratio_lines({"pimbrl/mfrl": ratio, "mfrl/pimbrl": step_ratio(mfrl, pim)}, missing="—")
     assert lines[0] == f"pimbrl/mfrl: 0.150 ({ratio['note']})"

@@ -429,6 +429,19 @@ def median_steps_to_threshold(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def steps_text(measured: float | None, above: float | None, at_most: float | None = None) -> str:
+    """Steps to a threshold as measured (``"55,000"``) or bounded (``"> 400,000"``, ``"> 50,000 and <= 60,000"``).
+
+    For one run (``above``: its budget where it did not reach the threshold) or a median of
+    :func:`median_steps_to_threshold`; ``"unknown"`` where nothing bounds it.
+    """
+    if measured is not None:
+        return f"{measured:,.0f}"
+    if above is None:
+        return "unknown"
+    return f"> {above:,.0f}" + ("" if at_most is None else f" and <= {at_most:,.0f}")
+
+
 def step_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     """Ratio of the mean steps to the threshold, a/b, and the ratio of the medians.
 
