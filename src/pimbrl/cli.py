@@ -291,20 +291,25 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
     curves = []
     thresholds = set()
+    envs = set()
     for i, path in enumerate(args.run_dirs):
         run = RunDirectory(path)
-        payload = run.read_config()
+        run.check_entries()
+        cfg = run.recorded_config()
         rows = run.evaluations.read()
         if not rows:
             raise ValueError(f"{path} has no evaluations yet")
-        cfg = payload["config"]
-        label = args.labels[i] if args.labels and i < len(args.labels) else f"{cfg['method']}/{cfg['agent']} seed {cfg['seed']}"
+        label = (
+            args.labels[i]
+            if args.labels and i < len(args.labels)
+            else f"{cfg.get('method')}/{cfg.get('agent')} seed {cfg.get('seed')}"
+        )
         cols = {name: np.array([float(r[name]) for r in rows]) for name in ("step", "return_mean", "return_min", "return_max")}
         curves.append((label, cols["step"], cols["return_mean"], cols["return_min"], cols["return_max"]))
         if cfg.get("threshold") is not None:
             thresholds.add(float(cfg["threshold"]))
+        envs.add(cfg["env"])
     out = Path(args.out)
-    envs = {RunDirectory(p).read_config()["config"]["env"] for p in args.run_dirs}
     plotting.plot_learning_curves(
         curves, out, title=", ".join(sorted(envs)), threshold=thresholds.pop() if len(thresholds) == 1 else None
     )
@@ -609,6 +614,8 @@ _OS_FIXES = {
     errno.ENOSPC: "free some disk space or choose a --run-dir on another disk",
     errno.EDQUOT: "free some space within your disk quota or choose a --run-dir on another disk",
     errno.EROFS: "the disk is read-only: choose a --run-dir on a writable disk",
+    errno.EFBIG: "a file-size limit was reached (ulimit -f, or the file system's largest file): raise the limit, or "
+    "choose a --run-dir on another disk",
     errno.EACCES: "check the permissions of that path, or choose a --run-dir where you can write",
     errno.EPERM: "check the permissions of that path, or choose a --run-dir where you can write",
     errno.ENOTDIR: "a part of that path is a file, not a directory: choose another path",
@@ -618,7 +625,7 @@ _OS_FIXES = {
 
 def _is_environment_error(exc: OSError) -> bool:
     """An error of the disk or the file system (reported as a message), not of the program (a traceback)."""
-    return exc.filename is not None or exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+    return exc.filename is not None or exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
 
 
 def _os_message(exc: OSError) -> str:

@@ -34,6 +34,7 @@ __all__ = [
     "ConfigError",
     "add_arguments",
     "at_most",
+    "check_env_id",
     "field_type",
     "from_dict",
     "overrides_from_args",
@@ -68,6 +69,32 @@ MAX_BATCH = 100_000
 MAX_LR = 1.0
 #: seeds (numpy's classic seed range)
 MAX_SEED = 2**32 - 1
+
+
+def check_env_id(env: Any, registered: bool = False) -> str:
+    """``env`` if it is an environment id a configuration file may name, else :class:`ConfigError` saying why.
+
+    A non-empty string that is not Gymnasium's ``module:id`` form: read from a file (a run's ``config.json``,
+    ``--config FILE``), that form would import the module it names, code that the person running the command
+    did not name. With ``registered``, the id must also be registered with Gymnasium in this process.
+    """
+    if not isinstance(env, str) or not env:
+        raise ConfigError(f"env must be an environment id (a non-empty string), got {env!r}")
+    if ":" in env:
+        module = env.split(":", 1)[0]
+        raise ConfigError(
+            f"env {env!r} is Gymnasium's module:id form, which would import the module {module!r}; a run or "
+            "configuration file names a registered environment id only (pimbrl imports no module named in a file)"
+        )
+    if registered:
+        import gymnasium as gym
+
+        if env not in gym.registry:
+            raise ConfigError(
+                f"env {env!r} is not a registered environment here: install or import the package that registers it "
+                "(a run names a registered id; pimbrl imports nothing named in a file)"
+            )
+    return env
 
 
 class _Unset:

@@ -18,7 +18,10 @@ Generation, fully seeded:
 
 Train and test pools come from disjoint sets of runs (independent seed streams), so no test state is
 ever a training state. Pools are cached under :func:`pimbrl.physics.kernels.cache_dir`, keyed by the
-numerics, the simulator kernel's version and every generation parameter, and written atomically. The runs
+numerics, the simulator kernel's version and every generation parameter, and written atomically. The cache
+is used only in a directory of this user's that nobody else may write, and an entry is checked when it is
+loaded (a regular file, plain arrays of the expected shapes, dtypes, finite and bounded values): an invalid
+one is generated anew, with a warning, never used. The runs
 are chaotic, so round-off (another kernel, another CPU) changes the states slightly (the test pool by up to
 2.3e-9 from kernel version 4 to 5) and can change which runs qualify (the training pool's composition).
 Since the unforced runs *are* the uncontrolled episodes, the uncontrolled return of every pool state is recorded for free.
@@ -27,16 +30,21 @@ Since the unforced runs *are* the uncontrolled episodes, the uncontrolled return
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
 import os
 import sys
 import tempfile
+import warnings
+import zipfile
 from dataclasses import asdict, dataclass, fields
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from ..fileio import UnsafeFileError, open_below, private_directory
 from ..physics import KuramotoSivashinsky
 from ..physics.kernels import GENERATOR_VERSION, cache_dir
 
@@ -169,19 +177,73 @@ def ks_initial_state_pool(
     key = _cache_key(phys, cfg)
     if (key, split) in _MEMO:
         return _MEMO[(key, split)]
-    path = cache_dir() / "ks_pools" / f"ks_pool_{key}_{split}.npz"
-    pool = None
-    if path.exists():
-        try:
-            with np.load(path) as data:
-                pool = KSPool(data["states"], data["uncontrolled_terms"], data["run_ids"])
-        except (OSError, ValueError, KeyError):
-            pool = None  # unreadable cache entry: regenerate it
+    directory = cache_dir() / "ks_pools"
+    try:
+        cacheable = private_directory(directory, "KS pools (the KS pool cache)")
+    except OSError:
+        cacheable = False
+    path = directory / f"ks_pool_{key}_{split}.npz"
+    n_target = cfg.n_train if split == "train" else cfg.n_test
+    pool = _load_cached(path, n_target, phys.n) if cacheable else None
     if pool is None:
         pool = _generate_split(phys, cfg, split, verbose)
-        _save_atomic(path, pool)
+        if cacheable:
+            _save_atomic(path, pool)
     _MEMO[(key, split)] = pool
     return pool
+
+
+#: no state of the chaotic KS transient comes near this (|u| stays below about 4); a cached one beyond it is poisoned
+_STATE_BOUND = 1e3
+
+
+def _load_cached(path: Path, rows: int, n: int) -> KSPool | None:
+    """The pool cached at ``path``, checked; ``None`` (with a warning where an entry exists) if it is not usable.
+
+    The entry must be a regular file of this user's (no link, no FIFO), an ``.npz`` of plain arrays (never
+    unpickled) holding ``rows`` states of ``n`` finite float64 values within :data:`_STATE_BOUND`, their
+    ``(rows, 4)`` finite uncontrolled terms and ``rows`` integer run ids.
+    """
+    try:
+        fd = open_below(path.parent, path.name)
+    except FileNotFoundError:
+        return None
+    except UnsafeFileError as exc:
+        warnings.warn(f"KS pool cache: {exc}; the pool is generated anew", stacklevel=3)
+        return None
+    problem = None
+    try:
+        with os.fdopen(fd, "rb") as fh:
+            info = os.fstat(fh.fileno())
+            if hasattr(os, "getuid") and info.st_uid != os.getuid():
+                problem = f"it belongs to user id {info.st_uid}, not to this user"
+            elif info.st_size > _MAX_POOL_BYTES:
+                problem = f"it is {info.st_size:,d} bytes, more than a pool"
+            else:
+                with np.load(io.BytesIO(fh.read(_MAX_POOL_BYTES)), allow_pickle=False) as data:
+                    arrays = {k: np.asarray(data[k]) for k in ("states", "uncontrolled_terms", "run_ids")}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+    if problem is None:
+        states, terms, run_ids = arrays["states"], arrays["uncontrolled_terms"], arrays["run_ids"]
+        if states.dtype != np.float64 or states.shape != (rows, n):
+            problem = f"its states are {states.dtype} of shape {states.shape}, expected float64 of shape {(rows, n)}"
+        elif terms.dtype != np.float64 or terms.shape != (rows, 4):
+            problem = f"its uncontrolled terms are {terms.dtype} of shape {terms.shape}, expected float64 of shape {(rows, 4)}"
+        elif run_ids.shape != (rows,) or run_ids.dtype.kind not in "iu":
+            problem = f"its run ids are {run_ids.dtype} of shape {run_ids.shape}, expected integers of shape {(rows,)}"
+        elif not (np.isfinite(states).all() and np.isfinite(terms).all()):
+            problem = "it holds non-finite numbers"
+        elif np.abs(states).max(initial=0.0) > _STATE_BOUND:
+            problem = f"it holds states beyond +-{_STATE_BOUND:g}, which no KS transient reaches"
+    if problem is not None:
+        warnings.warn(f"KS pool cache: {path} is not a valid pool ({problem}); the pool is generated anew", stacklevel=3)
+        return None
+    return KSPool(states, terms, run_ids)
+
+
+#: a cached pool of a few thousand 64-point states is a few MB
+_MAX_POOL_BYTES = 1 << 30
 
 
 def _save_atomic(path: os.PathLike, pool: KSPool) -> None:

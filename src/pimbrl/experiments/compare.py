@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -46,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from ..config import ConfigError, from_dict, to_dict
-from ..fileio import atomic_write_bytes
+from ..fileio import UnsafeFileError, atomic_write_bytes, open_below
 from ..training.cli_args import parse_train_args
 from ..training.config import TrainConfig, applicable_overrides, did_you_mean, resolve_config, typed_overrides
 from ..training.rundir import RunDirectory
@@ -173,11 +174,21 @@ def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[st
     """Refuse to reuse a run (finished or interrupted) whose configuration is not the requested one.
 
     Raises :class:`ConfigError` naming the first such run directory and the fields that differ; with
-    ``rerun`` each such run is moved aside (to ``<dir>.replaced-<time>``) so that it is trained again.
+    ``rerun`` each such run is moved aside (to ``<dir>.replaced-<time>``, under its lock) so that it is trained
+    again. A run whose lock another process holds (training, resumed, extended) is a :class:`ConfigError`
+    whatever its configuration: it is never moved, replaced or resumed from here.
     """
     stale = []
     for spec in specs:
         run_dir = RunDirectory(spec.path)
+        holder = run_dir.holder() if spec.path.is_dir() else None
+        if holder is not None:  # a run in use is never moved, replaced or resumed by a second driver
+            raise ConfigError(
+                f"{spec.path} is in use by another pimbrl process ({holder}): wait for it to end or stop it, then run "
+                "the comparison again (a run in use is never moved, replaced or summarised as finished)"
+            )
+        if spec.path.is_dir():
+            run_dir.check_entries(writing=True)  # links, FIFOs, shared files: refused before any run starts
         if not run_dir.config_path.exists():
             continue
         try:
@@ -203,19 +214,31 @@ def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[st
         while target.exists():
             n += 1
             target = spec.path.with_name(f"{spec.path.name}.replaced-{stamp}-{n}")
-        spec.path.rename(target)
+        run_dir = RunDirectory(spec.path)
+        run_dir.lock("compare --rerun: moving the run aside")  # RunLockedError if a process took it since the check
+        try:
+            spec.path.rename(target)
+        finally:
+            run_dir.unlock()
         log(f"moved {spec.path} aside to {target} ({', '.join(diffs)}); it runs again")
 
 
 def _last_row(path: Path) -> dict[str, str] | None:
-    """The last complete row of the CSV log ``path`` (its header and tail only are read); ``None`` if none."""
+    """The last complete row of the CSV log ``path`` (its header and tail only are read); ``None`` if none.
+
+    Opened like every file of a run (:func:`~pimbrl.fileio.open_below`): a link or a FIFO there gives ``None``.
+    """
     try:
-        with open(path, "rb") as fh:
-            header = fh.readline().decode(errors="replace").strip().split(",")
+        fd = open_below(path.parent, path.name)
+    except (OSError, UnsafeFileError):
+        return None
+    try:
+        with os.fdopen(fd, "rb") as fh:
+            header = fh.readline(8192).decode(errors="replace").strip().split(",")
             start = fh.tell()
             fh.seek(0, 2)
             fh.seek(max(start, fh.tell() - 8192))
-            tail = fh.read().decode(errors="replace")
+            tail = fh.read(8192).decode(errors="replace")
     except OSError:
         return None
     lines = tail.split("\n")[:-1]  # the part after the last newline is a row still being written
@@ -228,9 +251,10 @@ def _last_row(path: Path) -> dict[str, str] | None:
 
 def _number(row: dict[str, str] | None, key: str) -> float | None:
     try:
-        return None if row is None else float(row[key])
+        value = None if row is None else float(row[key])
     except (KeyError, ValueError):
         return None
+    return value if value is not None and math.isfinite(value) and abs(value) < 1e15 else None
 
 
 def child_status(spec: RunSpec) -> str:
@@ -334,7 +358,9 @@ def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] 
                 spec, cmd = pending.pop(0)
                 log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
                 Path(spec.path).mkdir(parents=True, exist_ok=True)
-                out = open(Path(spec.path) / CHILD_LOG, "ab")  # noqa: SIM115 - closed when the child ends
+                # never through a link or into a file with other names (the run directory may be someone else's)
+                fd = open_below(spec.path, CHILD_LOG, os.O_WRONLY | os.O_APPEND | os.O_CREAT, single_link=True)
+                out = os.fdopen(fd, "ab")
                 running.append((spec, subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT), out))
             time.sleep(0.5)
             for item in list(running):
@@ -511,7 +537,7 @@ def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
         lines.append(f"{label},mean,{s2t},,{m['final_return_mean']!r},,{m['wall_s_mean']:.1f},,{m['update_to_data']:.3f}")
     atomic_write_bytes(root / "summary.csv", ("\n".join(lines) + "\n").encode())
     slim = {**result, "runs": [{k: v for k, v in r.items() if k != "curve"} for r in result["runs"]], "env": env_id}
-    atomic_write_bytes(root / "summary.json", (json.dumps(slim, indent=2) + "\n").encode())
+    atomic_write_bytes(root / "summary.json", (json.dumps(slim, indent=2, allow_nan=False) + "\n").encode())
     plot_method_curves(result, root / "curves.png", env_id)
 
 

@@ -13,6 +13,8 @@
 from __future__ import annotations
 
 import csv
+import io
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,7 @@ import torch
 
 from .. import training
 from ..envs import PhysicsEnv
+from ..fileio import MAX_CSV_BYTES, MAX_JSON_BYTES, UnsafeFileError, read_below, strict_json
 from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 from ..training import Run
@@ -49,7 +52,9 @@ def check_fits(kind: str, run_dir: str | Path) -> None:
     Burgers run, ``rollouts`` an mbrl or pimbrl run. The message names the run's environment and method and
     the figure that fits it.
     """
-    cfg = training.RunDirectory(run_dir).read_config().get("config", {})
+    run = training.RunDirectory(run_dir)
+    run.check_entries()
+    cfg = run.recorded_config()
     env, method = cfg.get("env"), cfg.get("method")
     if kind in _FIGURE_ENVS:
         want, name = _FIGURE_ENVS[kind]
@@ -147,16 +152,23 @@ def model_error_histograms(model_eval_dir: str | Path, out: str | Path) -> Path:
     from .model_eval import _plot
 
     path = Path(model_eval_dir) / "model_errors.csv"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} not found: run `pimbrl model-eval ENV --run-dir {model_eval_dir}` first")
-    with open(path) as fh:
-        rows = [(r["model"], r["split"], float(r["mse"])) for r in csv.DictReader(fh)]
+    try:
+        text = read_below(model_eval_dir, "model_errors.csv", MAX_CSV_BYTES).decode("utf-8", errors="replace")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path} not found: run `pimbrl model-eval ENV --run-dir {model_eval_dir}` first") from None
+    try:
+        rows = [(str(r["model"]), str(r["split"]), float(r["mse"])) for r in csv.DictReader(io.StringIO(text))]
+    except (KeyError, TypeError, ValueError, csv.Error) as exc:
+        raise UnsafeFileError(f"{path}: not a table `pimbrl model-eval` wrote ({type(exc).__name__}: {exc})") from None
+    if not all(math.isfinite(mse) and mse >= 0 for _, _, mse in rows):
+        raise UnsafeFileError(f"{path}: an mse that is not a finite number >= 0; the table was edited or damaged")
     title = Path(model_eval_dir).name
-    summary = Path(model_eval_dir) / "summary.json"
-    if summary.exists():
-        import json
-
-        title = json.loads(summary.read_text()).get("env", title)
+    try:
+        summary = strict_json(read_below(model_eval_dir, "summary.json", MAX_JSON_BYTES), Path(model_eval_dir) / "summary.json")
+    except FileNotFoundError:
+        summary = {}
+    if isinstance(summary, dict) and isinstance(summary.get("env"), str):
+        title = summary["env"]
     _plot(rows, Path(out), title)
     return Path(out)
 

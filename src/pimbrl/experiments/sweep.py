@@ -308,6 +308,8 @@ def run_sweep(
     for o in failed:
         log(f"FAILED {o['path']}: {o['error']}")
     result = aggregate(spec, trials)
+    for line in result["unreadable"]:
+        log(f"UNREADABLE {line}")
     result["failed"] = [o["path"] for o in failed]
     result["executed"] = sum(1 for o in outcomes if o["ok"] and not o.get("skipped"))
     write_sweep_outputs(result, root, spec.name)
@@ -347,17 +349,26 @@ def _run_on_ray(
 
 
 def aggregate(spec: SweepSpec, trials: Sequence[Trial]) -> dict[str, Any]:
-    """One row per trial that has evaluations, and the curves of every setting (for means over seeds)."""
+    """One row per trial that has evaluations, and the curves of every setting (for means over seeds).
+
+    A trial whose run directory cannot be read (damaged, or holding links or FIFOs) is left out and named,
+    with the reason, in ``unreadable``.
+    """
     rows: list[dict[str, Any]] = []
     curves: dict[tuple[str, str, str], list[dict[str, list[float]]]] = {}
+    unreadable: list[str] = []
     for t in trials:
-        result = RunDirectory(t.path).result(spec.threshold)
+        try:
+            result = RunDirectory(t.path).result(spec.threshold)
+        except (ValueError, OSError) as exc:  # a damaged run directory: reported, the others aggregated
+            unreadable.append(f"{t.path}: {exc}")
+            continue
         if result is None:
             continue
         curve = result.pop("curve")
         rows.append({"env": t.env, "method": t.method, "setting": t.setting, "seed": t.seed, **result})
         curves.setdefault((t.env, t.method, t.setting), []).append(curve)
-    return {"name": spec.name, "threshold": spec.threshold, "rows": rows, "curves": curves}
+    return {"name": spec.name, "threshold": spec.threshold, "rows": rows, "curves": curves, "unreadable": unreadable}
 
 
 def write_sweep_outputs(result: dict[str, Any], root: Path, title: str) -> None:
@@ -381,7 +392,7 @@ def write_sweep_outputs(result: dict[str, Any], root: Path, title: str) -> None:
         lines.append(",".join('"' + str(r[c]) + '"' if c == "setting" else ("" if r[c] is None else str(r[c])) for c in cols))
     atomic_write_bytes(root / "results.csv", ("\n".join(lines) + "\n").encode())
     summary = {k: v for k, v in result.items() if k != "curves"}
-    atomic_write_bytes(root / "summary.json", (json.dumps(summary, indent=2, default=str) + "\n").encode())
+    atomic_write_bytes(root / "summary.json", (json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n").encode())
     if not result["curves"]:
         return
     plotted = [

@@ -39,7 +39,6 @@ import hashlib
 import importlib.util
 import os
 import shutil
-import stat
 import sys
 import tempfile
 import warnings
@@ -53,6 +52,7 @@ import llvmlite.binding as llvm
 import numpy as np
 from numba import boolean, float64, int64
 
+from ..fileio import UnsafeFileError, open_below, private_directory
 from .stencil import Stencil
 
 __all__ = ["GENERATOR_VERSION", "N_REWARD_TERMS", "PDEKernel", "PDEKernelSpec", "build_pde_kernel", "cache_dir"]
@@ -377,33 +377,42 @@ def _uid() -> int:
 def _private_dir(directory: Path) -> bool:
     """Create ``directory`` (mode 0700) if missing; whether it is safe to import modules from.
 
-    Safe: a real directory (not a symbolic link) owned by this user, not writable by group or others.
-    An unsafe one is refused with a warning (another user could plant code there); ``OSError`` if it
-    cannot be created.
+    :func:`~pimbrl.fileio.private_directory`: a real directory owned by this user, not writable by group or
+    others; an unsafe one is refused with a warning (another user could plant code there).
     """
-    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-    info = os.lstat(directory)
-    problem = None
-    if not stat.S_ISDIR(info.st_mode):
-        problem = "it is not a directory (a symbolic link?)"
-    elif hasattr(os, "getuid") and info.st_uid != os.getuid():
-        problem = f"it is owned by user id {info.st_uid}, not by this user ({os.getuid()})"
-    elif info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        problem = f"group or others may write it (mode {stat.S_IMODE(info.st_mode):o})"
-    if problem is not None:
-        warnings.warn(
-            f"pimbrl is not caching compiled kernels in {directory}: {problem}; set PIMBRL_CACHE_DIR to a "
-            "directory of your own (mode 0700)",
-            stacklevel=3,
-        )
-        return False
-    return True
+    return private_directory(directory, "compiled kernels")
 
 
 def _write_once(path: Path, source: str) -> Path:
-    if not path.exists() or path.read_text() != source:
+    """``path`` holding ``source``: kept if it already does, else (re)written atomically.
+
+    An entry that is not a regular file of this user's with one name (a symbolic link, a FIFO, a file with
+    other hard links, another user's file) is never read or followed: it is replaced, with a warning.
+    """
+    if _cached_source(path) != source:
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(fd, "w") as fh:
             fh.write(source)
-        os.replace(tmp, path)
+        os.replace(tmp, path)  # replaces a link itself, never its target
     return path
+
+
+def _cached_source(path: Path) -> str | None:
+    """The text of the kernel cache entry ``path``, or ``None`` where it is missing or not to be trusted."""
+    try:
+        fd = open_below(path.parent, path.name, single_link=True)
+    except FileNotFoundError:
+        return None
+    except UnsafeFileError as exc:
+        warnings.warn(f"pimbrl kernel cache: {exc}; the entry is replaced", stacklevel=4)
+        return None
+    with os.fdopen(fd, "rb") as fh:
+        if hasattr(os, "getuid") and os.fstat(fd).st_uid != os.getuid():
+            warnings.warn(f"pimbrl kernel cache: {path} belongs to another user; the entry is replaced", stacklevel=4)
+            return None
+        data = fh.read(_MAX_KERNEL_SOURCE + 1)
+    return data.decode("utf-8", errors="replace") if len(data) <= _MAX_KERNEL_SOURCE else None
+
+
+#: a generated kernel module is a few tens of kB; a larger cache entry is not one
+_MAX_KERNEL_SOURCE = 4 << 20

@@ -33,6 +33,7 @@ from ..config import (
     MODEL_KINDS,
     ConfigError,
     at_most,
+    check_env_id,
     field_type,
     from_dict,
     in_range,
@@ -782,8 +783,8 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
             raise ConfigError(f"{key} must be an object, got {value!r}")
         else:
             flat.update({f"{nested}.{k}": v for k, v in value.items()})
-    env = flat.pop("env", TrainConfig.env)
-    flat = {"env": typed_value(str, env, "env"), **typed_overrides(flat)}
+    env = check_env_id(flat.pop("env", TrainConfig.env), registered=True)  # never imports a module named here
+    flat = {"env": env, **typed_overrides(flat)}
     top = {k: v for k, v in flat.items() if "." not in k}
     agent = {k[6:]: v for k, v in flat.items() if k.startswith("agent.")}
     dyna = {k[5:]: v for k, v in flat.items() if k.startswith("dyna.")}

@@ -395,6 +395,7 @@ def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, comman
     try:
         if run_dir.config_path.exists():  # another process created the run meanwhile
             raise FileExistsError(_exists_message(path))
+        run_dir.check_entries(writing=True)  # a folder holding planted links or FIFOs is refused
         run_dir.remove_stale_temporaries()
         run_dir.write_config({"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command})
     except BaseException:
@@ -479,15 +480,19 @@ def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False
     files are removed, the logs are cut back to the checkpoint, and a run whose final checkpoint is
     there but whose ``config.json`` still says "running" (killed between the two) is marked finished.
     ``inspect_only`` loads the state without taking the lock or touching any file (for evaluation and
-    figures, also of a run still in progress). In both cases ``config.json`` is validated like a new
+    figures, also of a run still in progress). Either way a run directory holding anything pimbrl does not
+    make there (a symbolic link, a FIFO, a log with other hard links) is refused first
+    (:meth:`~pimbrl.training.rundir.RunDirectory.check_entries`). In both cases ``config.json`` is validated like a new
     configuration and the checkpoint's counters are checked (:func:`check_checkpoint`).
     """
     run_dir = RunDirectory(path)
+    run_dir.check_entries(writing=not inspect_only)  # links, FIFOs, shared files: refused before anything is read
     run_dir.read_config()  # not a run directory: FileNotFoundError, before any lock file is made
     if not inspect_only:
         run_dir.lock()
     try:
         if not inspect_only:
+            run_dir.check_entries(writing=True)  # again under the lock: nothing changed since
             run_dir.remove_stale_temporaries()
         cfg = read_run_config(run_dir)
         run = build_run(cfg, run_dir, progress)

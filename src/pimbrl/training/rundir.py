@@ -21,6 +21,12 @@ One process at a time writes a run: :meth:`RunDirectory.lock` takes an exclusive
 (``fcntl.flock``) on ``run.lock``, held until :meth:`RunDirectory.close` or the end of the process (the
 OS drops it also when the process is killed). Reading a run (evaluation, figures) needs no lock.
 
+A run directory is read as untrusted input (it may be someone else's): every file is opened through
+:func:`pimbrl.fileio.open_below` (no symbolic link below the directory followed, regular files only, a size
+bound, no write to a file with other hard links), ``config.json`` is strict JSON with typed fields, and the
+CSV logs' numbers must be finite (:meth:`CsvLog.read`). :meth:`RunDirectory.check_entries` refuses a
+directory holding anything pimbrl does not make there before anything is read or changed.
+
 A checkpoint file is a one-line header, ``pimbrl-checkpoint <format> sha256 <hex digest>``, then the
 ``torch.save`` bytes of the state. It is read only if the format is this version's and the digest
 matches, and then with ``torch.load(weights_only=True)``: tensors and plain data, never code.
@@ -33,20 +39,35 @@ import datetime
 import hashlib
 import io
 import json
+import math
 import os
 import pickle
 import re
 import socket
+import stat
 import sys
 from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from ..config import ConfigError
-from ..fileio import atomic_write_bytes
+from ..config import check_env_id
+from ..fileio import (
+    MAX_CHECKPOINT_BYTES,
+    MAX_CSV_BYTES,
+    MAX_JSON_BYTES,
+    UnsafeFileError,
+    append_below,
+    atomic_write_bytes,
+    check_below,
+    ensure_directory_below,
+    open_below,
+    read_below,
+    strict_json,
+)
 from ..physics.kernels import GENERATOR_VERSION
 
 __all__ = [
@@ -207,18 +228,33 @@ def kernel_note(versions: dict[str, str]) -> str | None:
 
 
 class CsvLog:
-    """An append-only CSV file with a fixed header; rows are flushed as they are written."""
+    """An append-only CSV file with a fixed header; rows are flushed as they are written.
 
-    def __init__(self, path: Path, columns: list[str]) -> None:
-        self.path = path
+    The file is ``root/name``, opened without following links (:func:`~pimbrl.fileio.append_below`).
+    ``numeric`` columns are checked when the log is read: finite numbers (``step`` a whole number >= 0), or
+    empty where ``required`` does not list them.
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        name: str,
+        columns: list[str],
+        numeric: Sequence[str] = ("step",),
+        required: Sequence[str] = ("step",),
+    ) -> None:
+        self.root = root
+        self.name = name
+        self.path = root / name
         self.columns = columns
+        self.numeric = tuple(numeric)
+        self.required = tuple(required)
         self._fh: io.TextIOWrapper | None = None
 
     def _open(self) -> io.TextIOWrapper:
         if self._fh is None:
-            new = not self.path.exists() or self.path.stat().st_size == 0
-            self._fh = open(self.path, "a", newline="")  # noqa: SIM115 - kept open for appends
-            if new:
+            self._fh = append_below(self.root, self.name)
+            if os.fstat(self._fh.fileno()).st_size == 0:
                 self._fh.write(",".join(self.columns) + "\n")
                 self._fh.flush()
         return self._fh
@@ -230,41 +266,125 @@ class CsvLog:
         writer.writerow({k: _fmt(row.get(k)) for k in self.columns})
         fh.flush()
 
-    def truncate_after(self, step: int) -> None:
-        """Keep only complete rows with ``step <= step`` (used when resuming from a checkpoint)."""
-        self.close()
-        if not self.path.exists():
-            return
-        text = self.path.read_text()
+    def _lines(self) -> list[str] | None:
+        """The file's complete lines (a torn last line, from a killed process, left out); ``None`` if missing."""
+        try:
+            data = read_below(self.root, self.name, MAX_CSV_BYTES)
+        except FileNotFoundError:
+            return None
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError:
+            raise UnsafeFileError(f"{self.path}: not a CSV log written by pimbrl (not UTF-8 text)") from None
         lines = text.split("\n")
-        if not text.endswith("\n"):
-            lines = lines[:-1]  # a torn last line from a killed process
-        kept = [lines[0] if lines and lines[0] else ",".join(self.columns)]
-        for line in lines[1:]:
-            if not line:
-                continue
-            fields = line.split(",")
-            if len(fields) != len(self.columns):
-                continue
-            try:
-                if int(float(fields[0])) <= step:
-                    kept.append(line)
-            except ValueError:
-                continue
+        return lines[:-1]  # the part after the last newline: empty, or a row still being (or never fully) written
+
+    def truncate_after(self, step: int) -> None:
+        """Keep only the rows with ``step <= step`` (used when resuming from a checkpoint).
+
+        A torn last line is dropped; any other malformed row is an :class:`~pimbrl.fileio.UnsafeFileError`
+        naming its line (a damaged or edited log is reported, never silently cut).
+        """
+        self.close()
+        lines = self._lines()
+        if lines is None:
+            return
+        header = lines[0] if lines and lines[0] else ",".join(self.columns)
+        kept = [header]
+        for number, line, values in self._rows(lines):
+            if _whole(values[0], self.path, number, "step") <= step:
+                kept.append(line)
         atomic_write_bytes(self.path, ("\n".join(kept) + "\n").encode())
 
+    def _rows(self, lines: list[str]) -> Iterator[tuple[int, str, list[str]]]:
+        """(line number, line, values) of each data row, checked to have the header's number of fields."""
+        width = len(lines[0].split(",")) if lines and lines[0] else len(self.columns)
+        for number, line in enumerate(lines[1:], start=2):
+            if not line:
+                continue
+            values = _fields(line, self.path, number)
+            if len(values) != width:
+                raise UnsafeFileError(
+                    f"{self.path} line {number} has {len(values)} fields, its header {width}: the log was edited or "
+                    "damaged; restore it, or delete that line"
+                )
+            yield number, line, values
+
     def read(self) -> list[dict[str, str]]:
-        """All rows as dictionaries of strings (none if the file does not exist)."""
-        if not self.path.exists():
+        """All complete rows as dictionaries of strings (none if the file does not exist), checked.
+
+        The header must hold the ``required`` columns, every row as many fields as the header, and each
+        ``numeric`` value be a finite number (``step`` a whole number >= 0); otherwise
+        :class:`~pimbrl.fileio.UnsafeFileError` names the file, the line and the value.
+        """
+        lines = self._lines()
+        if not lines:
             return []
-        with open(self.path, newline="") as fh:
-            return list(csv.DictReader(fh))
+        header = _fields(lines[0], self.path, 1)
+        missing = [c for c in self.required if c not in header]
+        if missing:
+            raise UnsafeFileError(
+                f"{self.path} has no column {missing[0]!r} (its header: {lines[0][:200]!r}); it is not a log pimbrl wrote"
+            )
+        rows = []
+        for number, _, values in self._rows(lines):
+            row = dict(zip(header, values))
+            for column in self.numeric:
+                value = row.get(column, "")
+                if value == "" and column not in self.required:
+                    continue
+                if column == "step":
+                    _whole(value, self.path, number, column)
+                else:
+                    _finite(value, self.path, number, column)
+            rows.append(row)
+        return rows
 
     def close(self) -> None:
         """Close the file if it is open (a later append reopens it)."""
         if self._fh is not None:
             self._fh.close()
             self._fh = None
+
+
+def _fields(line: str, path: Path, number: int) -> list[str]:
+    """The fields of one CSV line; :class:`UnsafeFileError` naming the line where it cannot be split."""
+    try:
+        return next(csv.reader([line]))
+    except csv.Error as exc:
+        raise UnsafeFileError(
+            f"{path} line {number} is not a CSV row pimbrl wrote ({exc}); the log was edited or damaged: restore it, "
+            "or delete that line"
+        ) from None
+
+
+#: the largest step count read from a log (far beyond any run; a larger one is a damaged file)
+_MAX_STEP = 10**15
+
+
+def _finite(text: str, path: Path, line: int, column: str) -> float:
+    """``text`` as a finite float; :class:`UnsafeFileError` naming the file, line and column otherwise."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise UnsafeFileError(
+            f"{path} line {line}: {column} {text[:40]!r} is not a finite number; the log was edited or damaged: "
+            "restore it, or delete that line"
+        )
+    return value
+
+
+def _whole(text: str, path: Path, line: int, column: str) -> int:
+    """``text`` as a whole number in ``[0, 1e15]``; :class:`UnsafeFileError` otherwise."""
+    value = _finite(text, path, line, column)
+    if value != int(value) or not 0 <= value <= _MAX_STEP:
+        raise UnsafeFileError(
+            f"{path} line {line}: {column} {text[:40]!r} is not a step count (a whole number >= 0); the log was "
+            "edited or damaged: restore it, or delete that line"
+        )
+    return int(value)
 
 
 def _fmt(v: Any) -> str:
@@ -291,7 +411,26 @@ class RunDirectory:
         "updates",
         "wall_s",
     ]
+    #: the columns of ``evaluations.csv`` every reader relies on
+    EVAL_REQUIRED: ClassVar[tuple[str, ...]] = ("step", "return_mean", "return_min", "return_max", "updates", "wall_s")
     EPISODE_COLUMNS: ClassVar[list[str]] = ["step", "episode", "return", "length"]
+    #: every entry pimbrl makes in a run directory, and what it is (nothing else there is read or written)
+    ENTRIES: ClassVar[dict[str, str]] = {
+        "config.json": "regular file",
+        LOCK_FILE: "regular file",
+        "evaluations.csv": "regular file",
+        "episodes.csv": "regular file",
+        "metrics.csv": "regular file",
+        "selection.csv": "regular file",
+        "coefficients.json": "regular file",
+        "checkpoints": "directory",
+        "checkpoints/latest.pt": "regular file",
+        "tb": "directory",
+        "compare.log": "regular file",
+        "config.request.json": "regular file",
+    }
+    #: the logs a run appends to: they must have no other hard links
+    APPENDED: ClassVar[tuple[str, ...]] = ("evaluations.csv", "episodes.csv", "metrics.csv", "selection.csv", "compare.log")
     #: model-based policy selection (:mod:`pimbrl.training.selection`), one row per evaluation
     SELECTION_COLUMNS: ClassVar[list[str]] = [
         "step",
@@ -307,9 +446,15 @@ class RunDirectory:
         self.path = Path(path)
         self.config_path = self.path / "config.json"
         self.checkpoint_path = self.path / "checkpoints" / "latest.pt"
-        self.evaluations = CsvLog(self.path / "evaluations.csv", self.EVAL_COLUMNS)
-        self.episodes = CsvLog(self.path / "episodes.csv", self.EPISODE_COLUMNS)
-        self.selection = CsvLog(self.path / "selection.csv", self.SELECTION_COLUMNS)
+        self.evaluations = CsvLog(
+            self.path,
+            "evaluations.csv",
+            self.EVAL_COLUMNS,
+            numeric=[c for c in self.EVAL_COLUMNS if c != "episodes"],
+            required=self.EVAL_REQUIRED,
+        )
+        self.episodes = CsvLog(self.path, "episodes.csv", self.EPISODE_COLUMNS)
+        self.selection = CsvLog(self.path, "selection.csv", self.SELECTION_COLUMNS)
         self._metrics: CsvLog | None = None
         self._lock_fd: int | None = None
 
@@ -338,7 +483,8 @@ class RunDirectory:
             import fcntl
         except ImportError:  # pragma: no cover - no advisory locks on this platform
             return
-        fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o666)
+        # never through a link, never a file with another name elsewhere (it is truncated below)
+        fd = open_below(self.path, LOCK_FILE, os.O_RDWR | os.O_CREAT, single_link=True)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -364,6 +510,47 @@ class RunDirectory:
             pass  # the lock holds without the description
         self._lock_fd = fd
 
+    def holder(self) -> str | None:
+        """The process holding the run's lock, described (``None`` where no other holds it).
+
+        This object's own lock does not count; a lock file that cannot be opened safely (a link, a FIFO)
+        is an :class:`~pimbrl.fileio.UnsafeFileError`.
+        """
+        if self._lock_fd is not None:
+            return None
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - no advisory locks on this platform
+            return None
+        try:
+            fd = open_below(self.path, LOCK_FILE)
+        except FileNotFoundError:
+            return None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return _describe_holder(fd)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        finally:
+            os.close(fd)
+
+    def check_entries(self, writing: bool = False) -> None:
+        """Refuse a run directory whose entries are not what pimbrl makes there, before anything is read.
+
+        Every entry of :attr:`ENTRIES` that exists must be what it should be (a regular file or a folder),
+        never a symbolic link; with ``writing``, the logs appended to must have no other hard links.
+        Raises :class:`~pimbrl.fileio.UnsafeFileError` naming the first that is not.
+        """
+        for name, want in self.ENTRIES.items():
+            info = check_below(self.path, name, want)
+            if writing and info is not None and name in self.APPENDED and info.st_nlink != 1:
+                raise UnsafeFileError(
+                    f"{self.path / name} has {info.st_nlink} hard links (other names elsewhere); pimbrl appends only to "
+                    "files of its own: replace it with a copy (cp), or remove it"
+                )
+
     def unlock(self) -> None:
         """Release the run's lock if this object holds it."""
         if self._lock_fd is not None:
@@ -378,10 +565,10 @@ class RunDirectory:
         """
         removed = []
         for directory in (self.path, self.checkpoint_path.parent):
-            if not directory.is_dir():
-                continue
+            if directory != self.path and check_below(self.path, directory.name, "directory") is None:
+                continue  # no checkpoints folder (a link there is refused, never entered)
             for entry in directory.iterdir():
-                if _TEMPORARY.match(entry.name) and entry.is_file() and not entry.is_symlink():
+                if _TEMPORARY.match(entry.name) and stat.S_ISREG(os.lstat(entry).st_mode):
                     try:
                         entry.unlink()
                         removed.append(entry)
@@ -399,48 +586,79 @@ class RunDirectory:
         atomic_write_bytes(self.path / name, (json.dumps(payload, indent=2) + "\n").encode())
 
     def read_config(self) -> dict[str, Any]:
-        """The contents of ``config.json``.
+        """The contents of ``config.json``, with the type of every top-level field pimbrl reads checked.
 
-        ``FileNotFoundError`` if this is not a run directory, :class:`~pimbrl.config.ConfigError` if
-        the file is not a JSON object.
+        ``FileNotFoundError`` if this is not a run directory; :class:`~pimbrl.fileio.UnsafeFileError` (a
+        ``ValueError``) if the file is a link, a FIFO, too large, not strict JSON (``NaN``, ``Infinity`` and
+        overflowing numbers are refused), not an object, or if ``status``, ``config``, ``versions``,
+        ``summary`` or ``command`` has the wrong type.
         """
-        if not self.config_path.exists():
-            raise FileNotFoundError(f"{self.path} is not a pimbrl run directory (no config.json)")
         try:
-            payload = json.loads(self.config_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{self.config_path}: not valid JSON ({exc})") from None
+            data = read_below(self.path, "config.json", MAX_JSON_BYTES)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{self.path} is not a pimbrl run directory (no config.json)") from None
+        payload = strict_json(data, self.config_path)
         if not isinstance(payload, dict):
-            raise ConfigError(f"{self.config_path}: must be a JSON object, got {type(payload).__name__}")
+            raise UnsafeFileError(f"{self.config_path}: must be a JSON object, got {type(payload).__name__}")
+        for key, check, what in _TOP_LEVEL:
+            if key in payload and not check(payload[key]):
+                raise UnsafeFileError(
+                    f"{self.config_path}: {key} must be {what}, got {_short(payload[key])}; the file was edited or damaged"
+                )
         return payload
+
+    def recorded_config(self) -> dict[str, Any]:
+        """The ``config`` object of ``config.json``, with its ``env`` checked to be a registered-id string.
+
+        For readers that use a few fields without building the run (plots, figures). The env id must not
+        be Gymnasium's ``module:id`` form, which imports a module (a run names a registered id only);
+        whether it is registered here is not checked (a plot needs no environment). Errors are
+        :class:`~pimbrl.fileio.UnsafeFileError` naming the file.
+        """
+        config = self.read_config().get("config")
+        if not isinstance(config, dict):
+            raise UnsafeFileError(
+                f"{self.config_path}: has no 'config' object; this is not a run written by pimbrl (or its config.json was edited)"
+            )
+        env = config.get("env")
+        try:
+            check_env_id(env)
+        except ValueError as exc:
+            raise UnsafeFileError(f"{self.config_path}: {exc}") from None
+        threshold = config.get("threshold")
+        if threshold is not None and not _is_number(threshold):
+            raise UnsafeFileError(f"{self.config_path}: threshold must be a number or null, got {_short(threshold)}")
+        return config
 
     @property
     def status(self) -> str | None:
         """``"running"``, ``"finished"``, or ``None`` where there is no readable run."""
         try:
             return self.read_config().get("status")
-        except (FileNotFoundError, ConfigError):
+        except (FileNotFoundError, ValueError):  # ValueError: UnsafeFileError, a damaged or planted config.json
             return None
 
     def result(self, threshold: float | None = None) -> dict[str, Any] | None:
-        """What a run has reached so far (``None`` without evaluations).
+        """What a run has reached so far (``None`` without a config.json or evaluations).
 
         That is its steps, steps to ``threshold`` (default: the run's own) and the training wall-clock at which
         it was first reached, final and best mean test return, wall-clock, updates and its curves.
         """
-        if self.status is None:
+        try:
+            payload = self.read_config()  # a damaged config.json is an error here, not a run to leave out
+        except FileNotFoundError:
             return None
         rows = self.evaluations.read()
         if not rows:
             return None
-        payload = self.read_config()
         if threshold is None:
-            threshold = payload["config"].get("threshold")
+            threshold = self.recorded_config().get("threshold")
         steps = int(float(rows[-1]["step"]))
         updates = int(float(rows[-1]["updates"]))
         summary = payload.get("summary") or {}
         return {
-            "finished": payload.get("status") == "finished",
+            # a run whose lock another process holds is in use (resumed, extended), never counted as finished
+            "finished": payload.get("status") == "finished" and self.holder() is None,
             "steps": steps,
             "steps_to_threshold": steps_to_threshold(rows, threshold),
             "wall_s_to_threshold": wall_s_to_threshold(rows, threshold),
@@ -462,19 +680,20 @@ class RunDirectory:
     def metrics(self, columns: list[str]) -> CsvLog:
         """The metrics log; its columns are fixed by the first call (or the existing file's header)."""
         if self._metrics is None:
-            path = self.path / "metrics.csv"
-            if path.exists() and path.stat().st_size > 0:
-                with open(path) as fh:
-                    columns = fh.readline().strip().split(",")
-            self._metrics = CsvLog(path, columns)
+            try:
+                head = read_below(self.path, "metrics.csv", MAX_CSV_BYTES).split(b"\n", 1)[0]
+            except FileNotFoundError:
+                head = b""
+            if head:
+                columns = head.decode("utf-8", errors="replace").strip().split(",")
+            self._metrics = CsvLog(self.path, "metrics.csv", columns)
         return self._metrics
 
     def truncate_logs(self, step: int) -> None:
         """Drop the rows of every log after ``step`` (used when resuming from a checkpoint)."""
         for log in (self.evaluations, self.episodes, self.selection):
             log.truncate_after(step)
-        path = self.path / "metrics.csv"
-        if path.exists():
+        if check_below(self.path, "metrics.csv") is not None:
             self.metrics([]).truncate_after(step)
 
     def close(self) -> None:
@@ -492,6 +711,7 @@ class RunDirectory:
         """
         buf = io.BytesIO()
         torch.save(_plain({"version": CHECKPOINT_VERSION, **state}, ""), buf)
+        ensure_directory_below(self.path, "checkpoints")  # never written through a link
         atomic_write_bytes(self.checkpoint_path, pack_checkpoint(buf.getvalue()))
 
     def load_checkpoint(self) -> dict[str, Any]:
@@ -502,10 +722,12 @@ class RunDirectory:
         data (never unpickled as code) or cannot be read.
         """
         path = self.checkpoint_path
-        if not path.exists():
-            raise FileNotFoundError(f"no checkpoint in {self.path} (expected {path})")
         try:
-            data = path.read_bytes()
+            data = read_below(self.path, "checkpoints/latest.pt", MAX_CHECKPOINT_BYTES)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"no checkpoint in {self.path} (expected {path})") from None
+        except UnsafeFileError:
+            raise
         except OSError as exc:
             raise CheckpointError(f"checkpoint {path} could not be read ({_first_line(exc)})") from None
         payload = unpack_checkpoint(data, path)
@@ -527,6 +749,33 @@ class RunDirectory:
                 "another version of pimbrl; continue the run with that version, or start a new run"
             )
         return state
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _string_map(value: Any) -> bool:
+    return isinstance(value, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in value.items())
+
+
+def _summary(value: Any) -> bool:
+    return value is None or (isinstance(value, dict) and (value.get("wall_s") is None or _is_number(value["wall_s"])))
+
+
+#: the top-level fields of config.json pimbrl reads: (name, check, what it must be)
+_TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
+    ("status", lambda v: v in ("running", "finished"), '"running" or "finished"'),
+    ("config", lambda v: isinstance(v, dict), "an object"),
+    ("versions", _string_map, "an object of strings (package versions)"),
+    ("summary", _summary, "an object with a finite wall_s, or null"),
+    ("command", lambda v: isinstance(v, str), "a string"),
+)
 
 
 def _describe_holder(fd: int) -> str:
