@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 from pimbrl.cli import main
+from pimbrl.envs import KSPoolConfig
 from pimbrl.training import RunDirectory
 
 from . import test_run_safety
@@ -290,6 +291,7 @@ def test_a_device_in_a_run_is_refused_without_reading_it(run_copy: Path, capsys)
     assert "config.json" in _error_line(capsys)
 
 
+@pytest.mark.slow
 def test_a_file_size_limit_is_a_one_line_error_that_keeps_the_checkpoint(run_copy: Path) -> None:
     checkpoint = run_copy / "checkpoints" / "latest.pt"
     before = _digest(checkpoint)
@@ -338,6 +340,10 @@ def test_compare_rerun_never_moves_a_run_whose_lock_is_held(tmp_path, finished_r
 
 
 # ---------------------------------------------------------------------- 6. caches
+#: a pool small enough to generate anew in each test
+SMALL_POOL = KSPoolConfig(n_train=4, n_test=2, batch=8, seed=7)
+
+
 @pytest.fixture
 def pool_cache(tmp_path, monkeypatch):
     from pimbrl.envs import ks_states
@@ -367,8 +373,6 @@ def _pool_path(ks_states, config, split: str) -> Path:
     ],
 )
 def test_a_poisoned_ks_pool_cache_entry_is_rebuilt_with_a_warning(poison, pool_cache) -> None:
-    from .conftest import SMALL_POOL
-
     ks_states = pool_cache
     good = ks_states.ks_initial_state_pool("train", SMALL_POOL, verbose=False)
     path = _pool_path(ks_states, SMALL_POOL, "train")
@@ -387,8 +391,6 @@ def test_a_poisoned_ks_pool_cache_entry_is_rebuilt_with_a_warning(poison, pool_c
 
 
 def test_a_ks_pool_cache_others_can_write_is_not_used(pool_cache) -> None:
-    from .conftest import SMALL_POOL
-
     ks_states = pool_cache
     good = ks_states.ks_initial_state_pool("test", SMALL_POOL, verbose=False)
     path = _pool_path(ks_states, SMALL_POOL, "test")
