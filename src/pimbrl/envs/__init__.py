@@ -10,11 +10,12 @@ from .cartpole import CartPoleEnv, CartPoleTask, CartPoleVectorEnv
 from .ks import KSTask, KuramotoSivashinskyEnv, KuramotoSivashinskyVectorEnv
 from .ks_states import KSPool, KSPoolConfig, ks_initial_state_pool
 from .pendulum import PendulumEnv, PendulumTask, PendulumVectorEnv
-from .task import StepOutcome, Task
+from .task import VALIDATION_SEED, StepOutcome, Task
 
 __all__ = [
     "ENV_IDS",
     "PHYSICS_INFO_KEYS",
+    "VALIDATION_SEED",
     "BurgersEnv",
     "BurgersTask",
     "BurgersVectorEnv",

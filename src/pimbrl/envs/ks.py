@@ -110,8 +110,21 @@ class KSTask(Task):
 
     @property
     def eval_protocols(self) -> tuple[str, ...]:
-        """``"test"`` (the held-out test pool) and ``"authors"`` (5 fixed training states)."""
-        return ("test", "authors")
+        """``"test"`` (the held-out test pool), ``"validation"`` and ``"authors"`` (5 fixed training states)."""
+        return ("test", "validation", "authors")
+
+    def validation_initial_states(self, n: int) -> np.ndarray:
+        """The first ``n`` states of the validation pool of :attr:`pool_config`, in pool order.
+
+        The validation pool comes from runs disjoint from the training and test pools' (its own seed stream).
+        """
+        size = (self.pool_config or KSPoolConfig()).n_validation
+        if not 0 <= n <= size:
+            raise ValueError(
+                f"{n} KS validation states requested, but the validation pool holds {size} "
+                "(raise KSPoolConfig.n_validation through pool_config, or ask for fewer validation episodes)"
+            )
+        return ks_initial_state_pool("validation", self.pool_config).states[:n].copy()
 
     def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
         """``"test"``: the first ``n`` test-pool states; ``"authors"``: rows :data:`AUTHORS_EVAL_ROWS` of the training pool.

@@ -16,8 +16,10 @@ Generation, fully seeded:
    -234.6 ... -244.7);
 4. at most ``per_run`` snapshots per run; runs are added until the pool is full.
 
-Train and test pools come from disjoint sets of runs (independent seed streams), so no test state is
-ever a training state. Pools are cached under :func:`pimbrl.physics.kernels.cache_dir`, keyed by the
+Train, validation and test pools come from disjoint sets of runs (independent seed streams), so no test
+state is ever a training or validation state. Training reads the training pool (resets) and, for the
+decisions it makes (the switch to model-free fine-tuning), the validation pool; only evaluation reads the
+test pool. Pools are cached under :func:`pimbrl.physics.kernels.cache_dir`, keyed by the
 numerics, the simulator kernel's version and every generation parameter, and written atomically. The cache
 is used only in a directory of this user's that nobody else may write, and an entry is checked when it is
 loaded (a regular file, plain arrays of the expected shapes, dtypes, finite and bounded values): an invalid
@@ -51,7 +53,10 @@ from ..physics.kernels import GENERATOR_VERSION, cache_dir
 __all__ = ["KSPool", "KSPoolConfig", "ks_initial_state_pool"]
 
 _POOL_VERSION = 1
-Split = Literal["train", "test"]
+Split = Literal["train", "validation", "test"]
+#: each split's seed stream (spawn key of the pool seed): the train and test keys are those of every earlier
+#: release, so their pools are unchanged by the validation split's addition
+_SPLIT_KEYS: dict[str, int] = {"train": 0, "test": 1, "validation": 2}
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,8 @@ class KSPoolConfig:
 
     n_train: int = 600
     n_test: int = 200
+    #: states of the validation pool, which decisions during training read (never the test pool)
+    n_validation: int = 50
     seed: int = 0
     burn_in: int = 40
     spacing: int = 20
@@ -81,7 +88,7 @@ class KSPoolConfig:
                 raise TypeError(f"KSPoolConfig.{f.name} must be an integer, got {value!r}")
             elif value < 0:
                 raise ValueError(f"KSPoolConfig.{f.name} must be >= 0, got {value!r}")
-        for name in ("n_train", "n_test", "spacing", "per_run", "max_steps", "episode_steps", "batch"):
+        for name in ("n_train", "n_test", "n_validation", "spacing", "per_run", "max_steps", "episode_steps", "batch"):
             if getattr(self, name) < 1:
                 raise ValueError(f"KSPoolConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.burn_in + self.episode_steps + self.margin >= self.max_steps:
@@ -110,8 +117,8 @@ def _random_smooth_fields(rng: np.random.Generator, n_fields: int, physics: Kura
 
 
 def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Split, verbose: bool) -> KSPool:
-    n_target = cfg.n_train if split == "train" else cfg.n_test
-    stream = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(0 if split == "train" else 1,)))
+    n_target = split_size(cfg, split)
+    stream = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(_SPLIT_KEYS[split],)))
     zeros = np.zeros((cfg.batch, 4))
     states: list[np.ndarray] = []
     terms: list[np.ndarray] = []
@@ -146,6 +153,11 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
     return KSPool(np.concatenate(states)[:n_target], np.concatenate(terms)[:n_target], np.concatenate(runs)[:n_target])
 
 
+def split_size(cfg: KSPoolConfig, split: str) -> int:
+    """The number of states of the pool ``split`` under ``cfg``."""
+    return {"train": cfg.n_train, "validation": cfg.n_validation, "test": cfg.n_test}[split]
+
+
 def _cache_key(physics: KuramotoSivashinsky, cfg: KSPoolConfig) -> str:
     # the kernel's version too: a new kernel changes the pool's chaotic runs at round-off, enough to change
     # which runs qualify and the recorded uncontrolled returns
@@ -169,9 +181,9 @@ def ks_initial_state_pool(
     physics: KuramotoSivashinsky | None = None,
     verbose: bool = True,
 ) -> KSPool:
-    """The KS initial-state pool ``split`` ("train" or "test"), generated once and cached on disk."""
-    if split not in ("train", "test"):
-        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    """The KS initial-state pool ``split`` ("train", "validation" or "test"), generated once and cached on disk."""
+    if split not in _SPLIT_KEYS:
+        raise ValueError(f"split must be 'train', 'validation' or 'test', got {split!r}")
     cfg = config or KSPoolConfig()
     phys = physics or KuramotoSivashinsky()
     key = _cache_key(phys, cfg)
@@ -183,7 +195,7 @@ def ks_initial_state_pool(
     except OSError:
         cacheable = False
     path = directory / f"ks_pool_{key}_{split}.npz"
-    n_target = cfg.n_train if split == "train" else cfg.n_test
+    n_target = split_size(cfg, split)
     pool = _load_cached(path, n_target, phys.n) if cacheable else None
     if pool is None:
         pool = _generate_split(phys, cfg, split, verbose)

@@ -19,7 +19,11 @@ from gymnasium import spaces
 from ..physics import Physics
 from .render import BLUE, field_frame
 
-__all__ = ["StepOutcome", "Task", "check_bool", "check_finite_number", "check_positive_int"]
+__all__ = ["VALIDATION_SEED", "StepOutcome", "Task", "check_bool", "check_finite_number", "check_positive_int"]
+
+#: the entropy of the validation draws' seed stream (the ASCII bytes of "pimbrl-validation", truncated to 64
+#: bits): fixed, and no run or evaluation seed (those are below 2**32), so validation draws are no test draws
+VALIDATION_SEED = int.from_bytes(b"pimbrl-validation"[:8], "big")
 
 
 def check_finite_number(value: Any, name: str) -> float:
@@ -187,16 +191,28 @@ class Task(ABC):
         """
         return self.sample_initial_states(np.random.default_rng(seed), n)
 
-    def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
-        """Initial states of the test episodes of an evaluation ``protocol`` (one of :attr:`eval_protocols`).
+    def validation_initial_states(self, n: int) -> np.ndarray:
+        """``(n, state_dim)`` float64 initial states of the validation episodes, the same on every call.
 
-        ``"test"``: :meth:`test_initial_states` (``n`` required). Other protocols are defined by the tasks
-        that have them (KS: ``"authors"``); asking another task for one is a ``ValueError``.
+        The draws that decisions during training read (the switch to model-free fine-tuning), so that the
+        test states decide nothing. By default ``n`` states drawn by :meth:`sample_initial_states` from a
+        seed stream of their own (:data:`VALIDATION_SEED`, not an evaluation seed, so that changing the test
+        set changes no decision); a task with fixed pools (KS) returns the first ``n`` states of its
+        validation pool, whose runs are disjoint from the training and test pools'.
         """
-        if protocol == "test":
+        return self.sample_initial_states(np.random.default_rng(np.random.SeedSequence(VALIDATION_SEED)), n)
+
+    def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
+        """Initial states of the episodes of an evaluation ``protocol`` (one of :attr:`eval_protocols`).
+
+        ``"test"``: :meth:`test_initial_states` (``n`` required); ``"validation"``:
+        :meth:`validation_initial_states` (``n`` required, ``seed`` unused). Other protocols are defined by
+        the tasks that have them (KS: ``"authors"``); asking another task for one is a ``ValueError``.
+        """
+        if protocol in ("test", "validation"):
             if n is None:
-                raise ValueError("the 'test' evaluation protocol needs a number of episodes")
-            return self.test_initial_states(n, seed)
+                raise ValueError(f"the {protocol!r} evaluation protocol needs a number of episodes")
+            return self.test_initial_states(n, seed) if protocol == "test" else self.validation_initial_states(n)
         raise ValueError(
             f"evaluation protocol {protocol!r} is not defined for {type(self).__name__}; "
             f"choose from {', '.join(repr(p) for p in self.eval_protocols)}"
@@ -204,5 +220,5 @@ class Task(ABC):
 
     @property
     def eval_protocols(self) -> tuple[str, ...]:
-        """The evaluation protocols this task defines (``"test"``: held-out states, for every task)."""
-        return ("test",)
+        """The evaluation protocols this task defines (``"test"`` and ``"validation"``, for every task)."""
+        return ("test", "validation")

@@ -132,7 +132,17 @@ class DynaConfig:
     validation_size: int = param(
         2_000, "most recent held-out transitions used for the accuracy check", [positive(), at_most(MAX_TRANSITIONS)]
     )
-    finetune_return: float | None = param(None, "switch to model-free fine-tuning once the mean test return reaches this")
+    finetune_return: float | None = param(
+        None,
+        "switch to model-free fine-tuning once the mean return on the validation draws reaches this (the test states "
+        "decide nothing)",
+    )
+    finetune_episodes: int = param(
+        20,
+        "validation episodes the fine-tuning switch evaluates at each evaluation while it waits (KS: at most the "
+        "validation pool's 50)",
+        [positive(), at_most(MAX_BATCH)],
+    )
     finetune_after: int | None = param(
         None, "switch to model-free fine-tuning after this many real steps", [non_negative(), at_most(MAX_STEPS)]
     )

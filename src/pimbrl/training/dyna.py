@@ -36,13 +36,14 @@ import torch
 from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
 from ..config import PHYSICS_MODEL_KINDS, parse_learned, parse_prior
-from ..envs import Task
+from ..envs import VALIDATION_SEED, Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
 from ..models.state_sources import broad_actions, broad_pairs, broad_states, even_shares, parse_sources
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from .config import TrainConfig
+from .evaluation import Evaluator
 from .selection import PolicySelector
 from .streams import RandomStreams
 
@@ -124,6 +125,15 @@ class DynaModel:
         self.baseline_mse = float("inf")  # the no-change prediction's error on the same held-out transitions
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
+        #: the validation episodes the fine-tuning switch reads (``dyna.finetune_return``), None when off: the
+        #: switch never reads the test states, so a run trains the same whatever its test set
+        self.validator = (
+            Evaluator(cfg.env, cfg.env_kwargs, d.finetune_episodes, VALIDATION_SEED, protocol="validation")
+            if d.finetune_return is not None
+            else None
+        )
+        #: the mean return on the validation draws at the last evaluation (None before the first)
+        self.last_validation: float | None = None
         #: model-based policy selection (``dyna.select_episodes``), None when off
         self.selector = PolicySelector(self.model_env, d.select_episodes, cfg.eval_seed) if d.select_episodes else None
 
@@ -133,18 +143,26 @@ class DynaModel:
         return float(self.streams.holdout.random() < self.cfg.dyna.holdout_fraction)
 
     # ------------------------------------------------------------------ the model phase
+    def validate(self, agent: Agent) -> None:
+        """At an evaluation: the deterministic policy on the validation draws, while the fine-tuning switch waits.
+
+        Nothing is drawn from the run's random streams (fixed initial states, the deterministic policy), so
+        this changes no step of the run; the switch reads the result at the next model phase.
+        """
+        if self.validator is not None and not self.finetuning:
+            self.last_validation = self.validator.run(lambda o: agent.act(o, deterministic=True)).mean
+
     def phase(
         self,
         real: ReplayBuffer,
         agent: Agent,
         t: int,
-        last_eval: float | None,
         timed: Callable[[str], Any],
         message: Callable[[str], None],
     ) -> None:
         """Fit, check and imagine (each where due); ``timed(phase)`` is a context manager that times a phase."""
         d = self.cfg.dyna
-        if self._switch_to_finetuning(t, last_eval):
+        if self._switch_to_finetuning(t, self.last_validation):
             message(f"step {t:>8,d}  switching to model-free fine-tuning")
         if self.finetuning:
             self.in_use = False
@@ -223,12 +241,15 @@ class DynaModel:
             nxt = self.trainer.residual.rollout(states.double(), actions.double())[:, -1].float()
         self.model.fit_normalization(states, nxt)
 
-    def _switch_to_finetuning(self, t: int, last_eval: float | None) -> bool:
-        """Switch (once, for good) to model-free fine-tuning when the configured criterion is met."""
+    def _switch_to_finetuning(self, t: int, validation_return: float | None) -> bool:
+        """Switch (once, for good) to model-free fine-tuning when the configured criterion is met.
+
+        By return: the mean return on the validation draws at the last evaluation (:meth:`validate`).
+        """
         d = self.cfg.dyna
         if self.finetuning:
             return False
-        by_return = d.finetune_return is not None and last_eval is not None and last_eval >= d.finetune_return
+        by_return = d.finetune_return is not None and validation_return is not None and validation_return >= d.finetune_return
         by_steps = d.finetune_after is not None and t >= d.finetune_after
         self.finetuning = by_return or by_steps
         return self.finetuning
@@ -286,6 +307,8 @@ class DynaModel:
             "imagined_buffer",
             "imagined_total",
         ]
+        if self.validator is not None:
+            names.append("model/validation_return")
         if self.trainer.residual is not None:
             names.append("model/physics_loss")
         if self.trainer.coefficients is not None:
@@ -301,6 +324,7 @@ class DynaModel:
             "model/no_change_mse": None if not np.isfinite(self.baseline_mse) else self.baseline_mse,
             "model/in_use": int(self.in_use),
             "model/finetuning": int(self.finetuning),
+            "model/validation_return": self.last_validation,
             "imagined_buffer": len(self.imagined),
             "imagined_total": self.imagined_total,
             "model/coefficient_loss": self.metrics.get("model/coefficient_loss"),
@@ -330,6 +354,7 @@ class DynaModel:
             "imagined": self.imagined.state_dict(),
             "in_use": self.in_use,
             "finetuning": self.finetuning,
+            "last_validation": self.last_validation,
             "val_mse": self.val_mse,
             "baseline_mse": self.baseline_mse,
             "metrics": dict(self.metrics),
@@ -344,6 +369,8 @@ class DynaModel:
         self.imagined.load_state_dict(state["imagined"])
         self.in_use = bool(state["in_use"])
         self.finetuning = bool(state["finetuning"])
+        last = state.get("last_validation")  # absent from checkpoints before the validation draws
+        self.last_validation = None if last is None else float(last)
         self.val_mse = float(state["val_mse"])
         self.baseline_mse = float(state["baseline_mse"])
         self.metrics = dict(state["metrics"])

@@ -3,7 +3,12 @@
 * pimbrl environments: all test episodes run at once in one native vector env, from the fixed initial
   states ``Task.test_initial_states(episodes, eval_seed)`` - the first states of the KS test pool
   (disjoint from the training pool), or states drawn once with ``eval_seed`` for the others;
-* other Gymnasium environments: episodes one after another, reset with seeds ``eval_seed + i``.
+* other Gymnasium environments: episodes one after another, reset with seeds ``seed + i`` (``eval_seed``
+  for the test episodes, :data:`~pimbrl.envs.VALIDATION_SEED` for the validation episodes).
+
+The ``"validation"`` protocol runs the validation draws (:meth:`pimbrl.envs.task.Task.validation_initial_states`),
+which the decisions made during training read (the switch to model-free fine-tuning); the test states decide
+nothing.
 
 A pimbrl task may define further protocols (``protocol=``): KS has ``"authors"``, the 5 fixed training
 states the paper's mean return is reported on (:meth:`pimbrl.envs.ks.KSTask.protocol_initial_states`).
@@ -76,9 +81,10 @@ class Evaluator:
         self.adapter = ActionAdapter(probe.action_space)
         base = probe.unwrapped
         self.native = isinstance(base, PhysicsEnv)
-        if not self.native and protocol != "test":
+        if not self.native and protocol not in ("test", "validation"):
             raise ValueError(
-                f"evaluation protocol {protocol!r} is not defined for {env_id}: environments outside pimbrl have only 'test'"
+                f"evaluation protocol {protocol!r} is not defined for {env_id}: environments outside pimbrl have only "
+                "'test' and 'validation'"
             )
         if isinstance(base, PhysicsEnv):
             self.initial_states = base.task.protocol_initial_states(protocol, episodes, self.seed)

@@ -294,7 +294,7 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
             # 2. update phase: model phase (model-based methods), then the agent's updates
             if run.t >= cfg.update_after and run.t % cfg.update_every == 0:
                 if run.model is not None:
-                    run.model.phase(run.real, run.agent, run.t, log.last_eval, log.timed, log.message)
+                    run.model.phase(run.real, run.agent, run.t, log.timed, log.message)
                     event("model_phase", run)
                 with log.timed("agent_update"):
                     scale = run.lr_scale()
@@ -335,10 +335,17 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
 
 
 def _evaluate(run: Run) -> None:
-    """The deterministic policy on the test states; with policy selection on, also whole episodes in the model."""
+    """The deterministic policy on the test states; with policy selection on, also whole episodes in the model.
+
+    A model-based run whose fine-tuning switch waits also evaluates the policy on the validation draws
+    (:meth:`~pimbrl.training.dyna.DynaModel.validate`): the switch reads those, never the test return.
+    """
     with run.logger.timed("evaluate"):
         result = run.evaluator.run(lambda o: run.agent.act(o, deterministic=True))
     run.logger.evaluation(run.t, result, run.agent.n_updates)
+    if run.model is not None:  # what the fine-tuning switch reads: the validation draws, never these test states
+        with run.logger.timed("evaluate"):
+            run.model.validate(run.agent)
     selector = run.selector
     if selector is not None:
         with run.logger.timed("select"):
