@@ -242,7 +242,7 @@ def test_ks_authors_protocol_takes_fixed_training_rows_and_other_tasks_refuse_it
 
     train, test = ks_small_pools
     ks = KSTask(pool_config=SMALL_POOL)
-    assert ks.eval_protocols == ("test", "authors")
+    assert ks.eval_protocols == ("test", "validation", "authors")
     np.testing.assert_array_equal(ks.protocol_initial_states("test", 3, seed=0), test.states[:3])
     # the paper's rows need a training pool of at least 200 states; the small one holds 24
     with pytest.raises(ValueError, match="pool holds 24 states"):
@@ -251,7 +251,7 @@ def test_ks_authors_protocol_takes_fixed_training_rows_and_other_tasks_refuse_it
     np.testing.assert_array_equal(ks.protocol_initial_states("authors", None, seed=0), train.states[[0, 7, 23]])
     with pytest.raises(ValueError, match="has 3 episodes, not 5"):
         ks.protocol_initial_states("authors", 5, seed=0)
-    with pytest.raises(ValueError, match="not defined for PendulumTask; choose from 'test'"):
+    with pytest.raises(ValueError, match="not defined for PendulumTask; choose from 'test', 'validation'"):
         PendulumTask().protocol_initial_states("authors", None, seed=0)
 
     ev = Evaluator("pimbrl/KuramotoSivashinsky-v0", {"pool_config": SMALL_POOL}, None, 0, protocol="authors")

@@ -339,6 +339,19 @@ def test_compare_rerun_never_moves_a_run_whose_lock_is_held(tmp_path, finished_r
     assert RunDirectory(run).result()["finished"] is True
 
 
+def test_compare_follows_no_link_between_its_folder_and_a_run(tmp_path, capsys) -> None:
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    root = tmp_path / "C"
+    root.mkdir()
+    (root / "mfrl").symlink_to(elsewhere)  # DIR/mfrl leads out of the comparison's folder
+    code = main(["compare", "pendulum", "--methods", "mfrl", "--seeds", "1", "--run-dir", str(root), "--steps", "150"])
+    assert code == 2
+    line = _error_line(capsys)
+    assert "mfrl" in line and "symbolic link" in line
+    assert list(elsewhere.iterdir()) == []
+
+
 # ---------------------------------------------------------------------- 6. caches
 #: a pool small enough to generate anew in each test
 SMALL_POOL = KSPoolConfig(n_train=4, n_test=2, batch=8, seed=7)

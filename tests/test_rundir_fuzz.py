@@ -117,13 +117,14 @@ def _json_mutations() -> dict[str, Mutation]:
         "NaN": (None, "NaN"),
         "Infinity": (None, "-Infinity"),
         "1e999": (None, "1e999"),
+        "a 400-digit integer": (None, "1" + "0" * 400),
     }
     out: dict[str, Mutation] = {}
     for key in ("status", "config", "versions", "summary", "command"):
         out[f"config.json {key} missing"] = drop([key])
         for label, (value, raw) in values.items():
             out[f"config.json {key} = {label}"] = set_field([key], value, raw)
-    for env in (7, "", f"{PLANTED}:pimbrl/Pendulum-v0", "nobody/Nothing-v0", None, ["pimbrl/Pendulum-v0"]):
+    for env in (7, "", f"{PLANTED}:pimbrl/Pendulum-v0", "nobody/Nothing-v0", None, ["pimbrl/Pendulum-v0"], "CarRacing-v3"):
         out[f"config.env = {env!r}"] = set_field(["config", "env"], env)
     out["config.env missing"] = drop(["config", "env"])
     for key in ("method", "agent", "seed", "total_steps", "eval_episodes", "threshold", "eval_seed"):
@@ -133,6 +134,9 @@ def _json_mutations() -> dict[str, Mutation]:
     out["config.agent_config.hidden = [0]"] = set_field(["config", "agent_config", "hidden"], [0])
     out["config.agent_config.hidden = [1e9]"] = set_field(["config", "agent_config", "hidden"], [10**9])
     out["config.agent_config = []"] = set_field(["config", "agent_config"], [])
+    out["summary.wall_s = null"] = set_field(["summary", "wall_s"], None)
+    out["summary.wall_s = a 400-digit integer"] = set_field(["summary", "wall_s"], None, "1" + "0" * 400)
+    out["config.threshold = a 400-digit integer"] = set_field(["config", "threshold"], None, "1" + "0" * 400)
     return out
 
 

@@ -281,7 +281,7 @@ def private_directory(directory: Path, what: str) -> bool:
 
 
 def strict_json(data: bytes, path: str | os.PathLike) -> Any:
-    """``data`` parsed as JSON, refusing ``NaN``/``Infinity`` and numbers too large for a float.
+    """``data`` parsed as JSON, refusing ``NaN``/``Infinity``, numbers too large for a float and integers beyond 64 bits.
 
     Errors are :class:`UnsafeFileError` naming ``path`` (a one-line message).
     """
@@ -295,8 +295,13 @@ def strict_json(data: bytes, path: str | os.PathLike) -> Any:
             raise UnsafeFileError(f"{path}: the number {text} is too large for a float; pimbrl writes finite numbers only")
         return value
 
+    def integer(text: str) -> int:
+        if len(text.lstrip("-")) > 19:  # beyond 64 bits: no count, seed or step pimbrl writes
+            raise UnsafeFileError(f"{path}: the integer {text[:24]}... is too large; pimbrl writes 64-bit integers at most")
+        return int(text)
+
     try:
-        return json.loads(data.decode("utf-8"), parse_constant=constant, parse_float=number)
+        return json.loads(data.decode("utf-8"), parse_constant=constant, parse_float=number, parse_int=integer)
     except UnicodeDecodeError as exc:
         raise UnsafeFileError(f"{path}: not valid JSON (not UTF-8 text: {exc.reason})") from None
     except json.JSONDecodeError as exc:

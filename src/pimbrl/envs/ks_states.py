@@ -59,6 +59,10 @@ Split = Literal["train", "validation", "test"]
 _SPLIT_KEYS: dict[str, int] = {"train": 0, "test": 1, "validation": 2}
 
 
+#: the memory a pool generator's batch of trajectories may take
+_MAX_GENERATION_BYTES = 2 << 30
+
+
 @dataclass(frozen=True)
 class KSPoolConfig:
     """Parameters of the pool generator (all in control steps of 0.25 time units unless noted)."""
@@ -93,6 +97,16 @@ class KSPoolConfig:
                 raise ValueError(f"KSPoolConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.burn_in + self.episode_steps + self.margin >= self.max_steps:
             raise ValueError("KSPoolConfig: max_steps must exceed burn_in + episode_steps + margin")
+        for name, most in (("n_train", 10**5), ("n_test", 10**5), ("n_validation", 10**5), ("batch", 4096), ("max_steps", 10**5)):
+            if getattr(self, name) > most:
+                raise ValueError(f"KSPoolConfig.{name} must be at most {most:,d}, got {getattr(self, name):,d}")
+        trajectory_bytes = (self.max_steps + 1) * self.batch * 68 * 8  # the batch's states and reward terms
+        if trajectory_bytes > _MAX_GENERATION_BYTES:
+            raise ValueError(
+                f"KSPoolConfig: batch x max_steps = {self.batch:,d} x {self.max_steps:,d} needs "
+                f"{trajectory_bytes / 2**30:.1f} GiB while generating (at most {_MAX_GENERATION_BYTES / 2**30:.0f} GiB): "
+                "lower batch or max_steps"
+            )
 
 
 @dataclass(frozen=True)
@@ -124,7 +138,16 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
     terms: list[np.ndarray] = []
     runs: list[np.ndarray] = []
     run0 = 0
+    # a setting under which (almost) no run qualifies (e.g. settle_rate far too high) would loop for ever
+    max_runs = 50 * (-(-n_target // cfg.per_run)) + 10 * cfg.batch
     while sum(len(s) for s in states) < n_target:
+        if run0 >= max_runs:
+            got = sum(len(s) for s in states)
+            raise ValueError(
+                f"KS {split} pool: only {got}/{n_target} states from {run0:,d} runs; the pool settings let too few runs "
+                f"qualify (settle_rate {cfg.settle_rate:g}, max_steps {cfg.max_steps:,d}, burn_in {cfg.burn_in}, margin "
+                f"{cfg.margin}): use the defaults (KSPoolConfig())"
+            )
         u = _random_smooth_fields(stream, cfg.batch, physics)
         traj = np.empty((cfg.max_steps + 1, cfg.batch, physics.n))
         step_terms = np.empty((cfg.max_steps, cfg.batch, 4))

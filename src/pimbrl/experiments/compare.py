@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from ..config import ConfigError, from_dict, to_dict
-from ..fileio import UnsafeFileError, atomic_write_bytes, open_below
+from ..fileio import UnsafeFileError, atomic_write_bytes, check_below, open_below
 from ..training.cli_args import parse_train_args
 from ..training.config import TrainConfig, applicable_overrides, did_you_mean, resolve_config, typed_overrides
 from ..training.rundir import RunDirectory
@@ -575,6 +575,8 @@ def compare(
     """
     root = Path(root)
     specs = plan_runs(env_id, methods, seeds, root, overrides)  # every configuration checked before anything runs
+    for spec in specs:  # DIR/<method>/seed<k>: no link on the way below DIR (it would lead the runs elsewhere)
+        check_below(root, spec.path.relative_to(root), "directory")
     if run:
         check_reuse(specs, rerun=rerun, log=log)
         root.mkdir(parents=True, exist_ok=True)

@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, typed_value
-from ..fileio import atomic_write_bytes
+from ..fileio import atomic_write_bytes, check_below
 from ..training import METHODS, RunDirectory, TrainConfig
 from ..training.cli_args import parse_train_args
 from ..training.config import applicable_overrides, did_you_mean, resolve_config, typed_overrides
@@ -287,6 +287,9 @@ def run_sweep(
     """Run the unfinished trials of ``spec`` and aggregate all of them into ``root``."""
     root = Path(root)
     trials = plan_trials(spec, root)  # every configuration checked before anything runs
+    base = root.resolve()
+    for trial in trials:  # DIR/<env>/<method>/<setting>/seed<k>: no link on the way below DIR
+        check_below(base, Path(trial.path).relative_to(base), "directory")
     root.mkdir(parents=True, exist_ok=True)
     todo = [t for t in trials if RunDirectory(t.path).status != "finished"]
     if use_ray is None:

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -366,7 +367,13 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
     torch.set_num_threads(cfg.threads)
     streams = RandomStreams(cfg.seed)
     model_based = cfg.method in ("mbrl", "pimbrl")
-    collector = Collector(cfg.env, cfg.env_kwargs, streams, record_physics=model_based)
+    try:
+        collector = Collector(cfg.env, cfg.env_kwargs, streams, record_physics=model_based)
+    except (ImportError, gym.error.Error) as exc:  # a registered id whose package or dependency is missing here
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise ConfigError(
+            f"environment {cfg.env} cannot be made here ({type(exc).__name__}: {first}); install what it needs"
+        ) from None
     agent = make_agent(cfg.agent, collector.obs_dim, collector.adapter.dim, cfg.agent_config, cfg.seed)
     model = None
     extras = None
@@ -508,7 +515,7 @@ def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False
             check_checkpoint(state, cfg, run_dir.checkpoint_path)
             try:
                 run.load_state_dict(state)
-            except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as exc:
+            except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError, OverflowError) as exc:
                 raise CheckpointError(
                     f"checkpoint {run_dir.checkpoint_path} does not fit the run's configuration ({_describe(exc)}); "
                     "was config.json edited? Restore it, or delete the checkpoint to restart the run"

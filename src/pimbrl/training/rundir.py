@@ -765,7 +765,7 @@ def _string_map(value: Any) -> bool:
 
 
 def _summary(value: Any) -> bool:
-    return value is None or (isinstance(value, dict) and (value.get("wall_s") is None or _is_number(value["wall_s"])))
+    return value is None or (isinstance(value, dict) and ("wall_s" not in value or _is_number(value["wall_s"])))
 
 
 #: the top-level fields of config.json pimbrl reads: (name, check, what it must be)
@@ -773,7 +773,7 @@ _TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("status", lambda v: v in ("running", "finished"), '"running" or "finished"'),
     ("config", lambda v: isinstance(v, dict), "an object"),
     ("versions", _string_map, "an object of strings (package versions)"),
-    ("summary", _summary, "an object with a finite wall_s, or null"),
+    ("summary", _summary, "an object (with a finite wall_s, if any), or null"),
     ("command", lambda v: isinstance(v, str), "a string"),
 )
 
