@@ -140,12 +140,31 @@ def _refuse_kind(path: Path, mode: int, want: str) -> UnsafeFileError:
     )
 
 
-def check_below(root: str | os.PathLike, relative: str | os.PathLike, want: str = "regular file") -> os.stat_result | None:
+def _check_file(path: Path, info: os.stat_result, single_link: bool, own: bool) -> None:
+    """Refuse a file with other hard links (``single_link``) or of another user (``own``)."""
+    if single_link and info.st_nlink != 1:
+        raise UnsafeFileError(
+            f"{path} has {info.st_nlink} hard links (other names elsewhere); pimbrl writes only files of its own: "
+            "replace it with a copy (cp), or remove it"
+        )
+    if own and hasattr(os, "getuid") and info.st_uid != os.getuid():
+        raise UnsafeFileError(f"{path} belongs to user id {info.st_uid}, not to this user ({os.getuid()})")
+
+
+def check_below(
+    root: str | os.PathLike,
+    relative: str | os.PathLike,
+    want: str = "regular file",
+    *,
+    single_link: bool = False,
+    own: bool = False,
+) -> os.stat_result | None:
     """The ``lstat`` of ``root/relative`` (``None`` if missing), refusing what pimbrl never makes there.
 
     Every component below ``root`` must be no symbolic link, the ones on the way directories and the last a ``want``
     (``"regular file"`` or ``"directory"``); otherwise :class:`UnsafeFileError` names it. ``root`` itself,
-    the directory the user named, may be a link.
+    the directory the user named, may be a link. ``single_link`` and ``own`` also refuse a last component with
+    other hard links or of another user (see :func:`open_below`).
     """
     root = Path(root)
     parts = Path(relative).parts
@@ -162,18 +181,26 @@ def check_below(root: str | os.PathLike, relative: str | os.PathLike, want: str 
         kind = want if last else "directory"
         if (kind == "directory") != stat.S_ISDIR(info.st_mode) or (kind == "regular file" and not stat.S_ISREG(info.st_mode)):
             raise _refuse_kind(path, info.st_mode, kind)
+    if info is not None:
+        _check_file(root.joinpath(*parts), info, single_link, own)
     return info
 
 
 def open_below(
-    root: str | os.PathLike, relative: str | os.PathLike, flags: int = os.O_RDONLY, *, single_link: bool = False
+    root: str | os.PathLike,
+    relative: str | os.PathLike,
+    flags: int = os.O_RDONLY,
+    *,
+    single_link: bool = False,
+    own: bool = False,
 ) -> int:
     """A descriptor of the regular file ``root/relative``, opened without following any link below ``root``.
 
     The folders on the way are opened one by one with ``O_NOFOLLOW`` (relative to each other, so a folder
     swapped for a link meanwhile is not followed either), the file with ``O_NOFOLLOW | O_NONBLOCK`` (a
     FIFO cannot block the open) and then checked to be a regular file; ``single_link`` also refuses a file
-    with other hard links (a file pimbrl writes to must be its own). ``flags`` may hold ``O_CREAT`` (mode
+    with other hard links (a file pimbrl writes to must be its own), ``own`` a file of another user (a cache
+    entry). ``flags`` may hold ``O_CREAT`` (mode
     ``0o666`` less the umask). Raises :class:`UnsafeFileError`, or ``FileNotFoundError`` for a missing file.
     """
     root = Path(root)
@@ -205,21 +232,19 @@ def open_below(
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
             raise _refuse_kind(path, info.st_mode, "regular file")
-        if single_link and info.st_nlink != 1:
-            raise UnsafeFileError(
-                f"{path} has {info.st_nlink} hard links (other names elsewhere); pimbrl writes only files of its own: "
-                "replace it with a copy (cp), or remove it"
-            )
+        _check_file(path, info, single_link, own)
     except BaseException:
         os.close(fd)
         raise
     return fd
 
 
-def read_below(root: str | os.PathLike, relative: str | os.PathLike, max_bytes: int) -> bytes:
+def read_below(
+    root: str | os.PathLike, relative: str | os.PathLike, max_bytes: int, *, single_link: bool = False, own: bool = False
+) -> bytes:
     """The bytes of the regular file ``root/relative`` (:func:`open_below`), refusing one over ``max_bytes``."""
     path = Path(root).joinpath(relative)
-    fd = open_below(root, relative)
+    fd = open_below(root, relative, single_link=single_link, own=own)
     with os.fdopen(fd, "rb") as fh:
         size = os.fstat(fd).st_size
         if size > max_bytes:

@@ -46,7 +46,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..fileio import UnsafeFileError, open_below, private_directory
+from ..fileio import UnsafeFileError, private_directory, read_below
 from ..physics import KuramotoSivashinsky
 from ..physics.kernels import GENERATOR_VERSION, cache_dir
 
@@ -240,7 +240,7 @@ def _load_cached(path: Path, rows: int, n: int) -> KSPool | None:
     ``(rows, 4)`` finite uncontrolled terms and ``rows`` integer run ids.
     """
     try:
-        fd = open_below(path.parent, path.name)
+        raw = read_below(path.parent, path.name, _MAX_POOL_BYTES, own=True)
     except FileNotFoundError:
         return None
     except UnsafeFileError as exc:
@@ -248,15 +248,8 @@ def _load_cached(path: Path, rows: int, n: int) -> KSPool | None:
         return None
     problem = None
     try:
-        with os.fdopen(fd, "rb") as fh:
-            info = os.fstat(fh.fileno())
-            if hasattr(os, "getuid") and info.st_uid != os.getuid():
-                problem = f"it belongs to user id {info.st_uid}, not to this user"
-            elif info.st_size > _MAX_POOL_BYTES:
-                problem = f"it is {info.st_size:,d} bytes, more than a pool"
-            else:
-                with np.load(io.BytesIO(fh.read(_MAX_POOL_BYTES)), allow_pickle=False) as data:
-                    arrays = {k: np.asarray(data[k]) for k in ("states", "uncontrolled_terms", "run_ids")}
+        with np.load(io.BytesIO(raw), allow_pickle=False) as data:
+            arrays = {k: np.asarray(data[k]) for k in ("states", "uncontrolled_terms", "run_ids")}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
     if problem is None:

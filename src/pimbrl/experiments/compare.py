@@ -181,14 +181,15 @@ def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[st
     stale = []
     for spec in specs:
         run_dir = RunDirectory(spec.path)
-        holder = run_dir.holder() if spec.path.is_dir() else None
+        if not spec.path.is_dir():
+            continue
+        holder = run_dir.holder()
         if holder is not None:  # a run in use is never moved, replaced or resumed by a second driver
             raise ConfigError(
                 f"{spec.path} is in use by another pimbrl process ({holder}): wait for it to end or stop it, then run "
                 "the comparison again (a run in use is never moved, replaced or summarised as finished)"
             )
-        if spec.path.is_dir():
-            run_dir.check_entries(writing=True)  # links, FIFOs, shared files: refused before any run starts
+        run_dir.check_entries(writing=True)  # links, FIFOs, shared files: refused before any run starts
         if not run_dir.config_path.exists():
             continue
         try:

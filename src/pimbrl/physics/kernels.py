@@ -52,7 +52,7 @@ import llvmlite.binding as llvm
 import numpy as np
 from numba import boolean, float64, int64
 
-from ..fileio import UnsafeFileError, open_below, private_directory
+from ..fileio import UnsafeFileError, private_directory, read_below
 from .stencil import Stencil
 
 __all__ = ["GENERATOR_VERSION", "N_REWARD_TERMS", "PDEKernel", "PDEKernelSpec", "build_pde_kernel", "cache_dir"]
@@ -400,18 +400,13 @@ def _write_once(path: Path, source: str) -> Path:
 def _cached_source(path: Path) -> str | None:
     """The text of the kernel cache entry ``path``, or ``None`` where it is missing or not to be trusted."""
     try:
-        fd = open_below(path.parent, path.name, single_link=True)
+        data = read_below(path.parent, path.name, _MAX_KERNEL_SOURCE, single_link=True, own=True)
     except FileNotFoundError:
         return None
     except UnsafeFileError as exc:
         warnings.warn(f"pimbrl kernel cache: {exc}; the entry is replaced", stacklevel=4)
         return None
-    with os.fdopen(fd, "rb") as fh:
-        if hasattr(os, "getuid") and os.fstat(fd).st_uid != os.getuid():
-            warnings.warn(f"pimbrl kernel cache: {path} belongs to another user; the entry is replaced", stacklevel=4)
-            return None
-        data = fh.read(_MAX_KERNEL_SOURCE + 1)
-    return data.decode("utf-8", errors="replace") if len(data) <= _MAX_KERNEL_SOURCE else None
+    return data.decode("utf-8", errors="replace")
 
 
 #: a generated kernel module is a few tens of kB; a larger cache entry is not one

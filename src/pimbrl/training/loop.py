@@ -500,13 +500,14 @@ def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False
     configuration and the checkpoint's counters are checked (:func:`check_checkpoint`).
     """
     run_dir = RunDirectory(path)
-    run_dir.check_entries(writing=not inspect_only)  # links, FIFOs, shared files: refused before anything is read
+    if inspect_only:
+        run_dir.check_entries()  # links, FIFOs: refused before anything is read
     run_dir.read_config()  # not a run directory: FileNotFoundError, before any lock file is made
     if not inspect_only:
         run_dir.lock()
     try:
         if not inspect_only:
-            run_dir.check_entries(writing=True)  # again under the lock: nothing changed since
+            run_dir.check_entries(writing=True)  # under the lock, before anything is changed
             run_dir.remove_stale_temporaries()
         cfg = read_run_config(run_dir)
         run = build_run(cfg, run_dir, progress)

@@ -544,12 +544,7 @@ class RunDirectory:
         Raises :class:`~pimbrl.fileio.UnsafeFileError` naming the first that is not.
         """
         for name, want in self.ENTRIES.items():
-            info = check_below(self.path, name, want)
-            if writing and info is not None and name in self.APPENDED and info.st_nlink != 1:
-                raise UnsafeFileError(
-                    f"{self.path / name} has {info.st_nlink} hard links (other names elsewhere); pimbrl appends only to "
-                    "files of its own: replace it with a copy (cp), or remove it"
-                )
+            check_below(self.path, name, want, single_link=writing and name in self.APPENDED)
 
     def unlock(self) -> None:
         """Release the run's lock if this object holds it."""
@@ -607,15 +602,16 @@ class RunDirectory:
                 )
         return payload
 
-    def recorded_config(self) -> dict[str, Any]:
+    def recorded_config(self, payload: dict[str, Any] | None = None) -> dict[str, Any]:
         """The ``config`` object of ``config.json``, with its ``env`` checked to be a registered-id string.
 
         For readers that use a few fields without building the run (plots, figures). The env id must not
         be Gymnasium's ``module:id`` form, which imports a module (a run names a registered id only);
         whether it is registered here is not checked (a plot needs no environment). Errors are
-        :class:`~pimbrl.fileio.UnsafeFileError` naming the file.
+        :class:`~pimbrl.fileio.UnsafeFileError` naming the file. ``payload``: the file's contents where the
+        caller has read them already (:meth:`read_config`).
         """
-        config = self.read_config().get("config")
+        config = (self.read_config() if payload is None else payload).get("config")
         if not isinstance(config, dict):
             raise UnsafeFileError(
                 f"{self.config_path}: has no 'config' object; this is not a run written by pimbrl (or its config.json was edited)"
@@ -652,7 +648,7 @@ class RunDirectory:
         if not rows:
             return None
         if threshold is None:
-            threshold = self.recorded_config().get("threshold")
+            threshold = self.recorded_config(payload).get("threshold")
         steps = int(float(rows[-1]["step"]))
         updates = int(float(rows[-1]["updates"]))
         summary = payload.get("summary") or {}

@@ -38,11 +38,10 @@ def extend_run(path: str | Path, total_steps: int) -> None:
         ConfigError: if ``total_steps`` is not larger than the run's, or beyond the allowed maximum.
     """
     run_dir = RunDirectory(path)
-    run_dir.check_entries(writing=True)  # a run that cannot be resumed is not changed either
     payload = run_dir.read_config()  # not a run directory: FileNotFoundError, before any lock file is made
     run_dir.lock(f"extend to {total_steps} steps")
     try:
-        run_dir.check_entries(writing=True)
+        run_dir.check_entries(writing=True)  # a run that cannot be resumed is not changed either
         for log in (run_dir.evaluations, run_dir.episodes, run_dir.selection):
             log.read()  # a damaged log is reported before the run is changed (resume would refuse it after)
         cfg = read_run_config(run_dir)
