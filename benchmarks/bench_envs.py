@@ -21,7 +21,7 @@ import gymnasium as gym
 import numpy as np
 
 import pimbrl  # noqa: F401
-from pimbrl.physics import Burgers, CartPole, KuramotoSivashinsky, Pendulum
+from pimbrl.systems import Burgers, CartPole, KuramotoSivashinsky, Pendulum
 
 ENVS = {
     "KS": ("pimbrl/KuramotoSivashinsky-v0", KuramotoSivashinsky),

@@ -35,8 +35,7 @@ import time
 import _common
 import numpy as np
 
-from pimbrl.envs import ks_initial_state_pool
-from pimbrl.physics import KuramotoSivashinsky
+from pimbrl.systems import KuramotoSivashinsky, ks_initial_state_pool
 
 
 def _rules(g: np.ndarray, n: int, m: int) -> dict[str, np.ndarray]:

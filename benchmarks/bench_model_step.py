@@ -12,10 +12,9 @@ import _common
 import numpy as np
 import torch
 
-from pimbrl.envs import ks_initial_state_pool
 from pimbrl.models import ModelTrainer, PhysicsResidual, TransitionData, make_model
-from pimbrl.physics import Burgers, KuramotoSivashinsky
 from pimbrl.physics.kernels import build_pde_kernel
+from pimbrl.systems import Burgers, KuramotoSivashinsky, ks_initial_state_pool
 
 BATCH = 256
 

@@ -8,7 +8,7 @@ deterministic policy of its latest checkpoint is run
 
 * on the run's own held-out test states (``test``: KS, the 200 states of the test pool), and
 * on the 5 fixed training-pool states the paper reports its mean return on (``authors``: rows 0, 49, 99,
-  149, 199; see :meth:`pimbrl.envs.ks.KSTask.protocol_initial_states`),
+  149, 199; see :meth:`pimbrl.systems.ks.KSTask.protocol_initial_states`),
 
 and the mean, quartiles, minimum and maximum of the returns are printed and recorded per run, with the
 mean over the runs of each label (the name of the directory holding ``seed<k>``, as ``pimbrl compare`` lays

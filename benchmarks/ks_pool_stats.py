@@ -15,8 +15,7 @@ import time
 import _common
 import numpy as np
 
-from pimbrl.envs import KSPoolConfig, ks_initial_state_pool
-from pimbrl.physics import KuramotoSivashinsky
+from pimbrl.systems import KSPoolConfig, KuramotoSivashinsky, ks_initial_state_pool
 
 
 def main() -> None:

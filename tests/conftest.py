@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import pimbrl  # noqa: F401  (registers the environments)
-from pimbrl.envs import KSPoolConfig, ks_initial_state_pool
+from pimbrl.systems import KSPoolConfig, ks_initial_state_pool
 
 SMALL_POOL = KSPoolConfig(n_train=24, n_test=8, batch=16, seed=123)
 

@@ -311,12 +311,16 @@ def test_importing_pimbrl_still_registers_the_environments() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={"PYTHONPATH": str(SRC)}, check=True)
     import gymnasium as gym
 
-    from pimbrl.envs import ENV_IDS
+    from pimbrl import ENV_IDS
+    from pimbrl.systems import get_system
 
     assert out.stdout.strip() == str(sorted(ENV_IDS))
-    for env_id in ENV_IDS:  # the same entry points as pimbrl.envs.register_envs
+    for env_id in ENV_IDS:  # the entry points name the classes each system's module declares
         spec = gym.spec(env_id)
-        assert spec.entry_point.startswith("pimbrl.envs.") and spec.vector_entry_point.startswith("pimbrl.envs.")
+        system = get_system(env_id)
+        assert system is not None and system.id == env_id and spec.max_episode_steps == system.episode_steps
+        assert spec.entry_point == f"{system.env.__module__}:{system.env.__name__}"
+        assert spec.vector_entry_point == f"{system.vector_env.__module__}:{system.vector_env.__name__}"
 
 
 # ---------------------------------------------------------------------------------- progress bar

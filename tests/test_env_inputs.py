@@ -10,7 +10,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from pimbrl import ENV_IDS
-from pimbrl.envs import BurgersTask, KSPoolConfig, KSTask
+from pimbrl.systems import BurgersTask, KSPoolConfig, KSTask
 
 from .conftest import SMALL_POOL
 
@@ -107,7 +107,7 @@ def test_num_envs_must_be_a_positive_integer(num_envs) -> None:
 
 @pytest.mark.parametrize("steps", [2.5, "10", 0])
 def test_max_episode_steps_must_be_a_positive_integer(steps) -> None:
-    from pimbrl.envs import PendulumVectorEnv
+    from pimbrl.systems import PendulumVectorEnv
 
     with pytest.raises((ValueError, TypeError), match="max_episode_steps"):
         PendulumVectorEnv(num_envs=2, max_episode_steps=steps)
@@ -189,7 +189,7 @@ def test_render_shows_the_state() -> None:
 
 
 def test_render_mode_none_stays_the_default_and_unknown_modes_are_refused() -> None:
-    from pimbrl.envs import PendulumEnv, PendulumVectorEnv
+    from pimbrl.systems import PendulumEnv, PendulumVectorEnv
 
     assert gym.make("pimbrl/Pendulum-v0").unwrapped.render_mode is None
     with pytest.raises(ValueError, match="render_mode='human'"):

@@ -9,7 +9,7 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 from pimbrl import ENV_IDS
-from pimbrl.envs import BurgersTask, KSTask, PendulumTask
+from pimbrl.systems import BurgersTask, KSTask, PendulumTask
 
 from .conftest import SMALL_POOL
 

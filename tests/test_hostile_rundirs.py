@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from pimbrl.cli import main
-from pimbrl.envs import KSPoolConfig
+from pimbrl.systems import KSPoolConfig
 from pimbrl.training import RunDirectory
 
 from . import test_run_safety
@@ -359,7 +359,7 @@ SMALL_POOL = KSPoolConfig(n_train=4, n_test=2, batch=8, seed=7)
 
 @pytest.fixture
 def pool_cache(tmp_path, monkeypatch):
-    from pimbrl.envs import ks_states
+    from pimbrl.systems import ks as ks_states
 
     monkeypatch.setenv("PIMBRL_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(ks_states, "_MEMO", {})
@@ -367,7 +367,7 @@ def pool_cache(tmp_path, monkeypatch):
 
 
 def _pool_path(ks_states, config, split: str) -> Path:
-    from pimbrl.physics import KuramotoSivashinsky
+    from pimbrl.systems import KuramotoSivashinsky
 
     key = ks_states._cache_key(KuramotoSivashinsky(), config)
     return ks_states.cache_dir() / "ks_pools" / f"ks_pool_{key}_{split}.npz"

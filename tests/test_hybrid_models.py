@@ -11,7 +11,7 @@ import torch
 from pimbrl.cli import main
 from pimbrl.config import ConfigError
 from pimbrl.models import HybridModel, ModelTrainer, PhysicsModel, PhysicsResidual, TransitionData, make_model
-from pimbrl.physics import Burgers, KuramotoSivashinsky, Pendulum
+from pimbrl.systems import Burgers, KuramotoSivashinsky, Pendulum
 from pimbrl.training import RunDirectory, create_run, resolve_config, train
 from pimbrl.training.cli_args import config_from_argv
 
@@ -151,7 +151,7 @@ def test_on_an_ode_the_physics_model_is_the_solver_step() -> None:
 
 
 def test_unknown_model_kind_and_bad_scale_are_refused() -> None:
-    with pytest.raises(ValueError, match="model kind must be one of convlstm, equivariant, physics, hybrid"):
+    with pytest.raises(ValueError, match="model kind must be one of convlstm, equivariant, mlp, physics, hybrid"):
         make_model(Burgers(), kind="fourier")
     with pytest.raises(ValueError, match="correction_scale"):
         make_model(Burgers(), kind="hybrid", correction_scale=0.0)

@@ -6,9 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from pimbrl.envs import KSPoolConfig, ks_initial_state_pool
-from pimbrl.envs import ks_states as ks_states_module
-from pimbrl.physics import KuramotoSivashinsky
+from pimbrl.systems import KSPoolConfig, KuramotoSivashinsky, ks_initial_state_pool
+from pimbrl.systems import ks as ks_states_module
 
 from .conftest import SMALL_POOL
 
@@ -76,8 +75,8 @@ def test_bad_pool_arguments() -> None:
 
 def test_pools_are_cached_per_simulator_kernel(monkeypatch) -> None:
     """A new kernel changes the chaotic runs at round-off: its pools must not be those of the previous one."""
-    from pimbrl.envs import ks_states
-    from pimbrl.physics import KuramotoSivashinsky
+    from pimbrl.systems import KuramotoSivashinsky
+    from pimbrl.systems import ks as ks_states
 
     physics, cfg = KuramotoSivashinsky(), ks_states.KSPoolConfig()
     key = ks_states._cache_key(physics, cfg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -10,10 +11,9 @@ import torch
 
 from pimbrl.cli import main
 from pimbrl.config import ConfigError, parse_learned, parse_prior
-from pimbrl.envs import ks_initial_state_pool
 from pimbrl.models import ModelTrainer, PhysicsResidual, make_model
 from pimbrl.models.coefficients import LearnedCoefficients
-from pimbrl.physics import Burgers, CartPole, KuramotoSivashinsky, Pendulum
+from pimbrl.systems import Burgers, CartPole, KuramotoSivashinsky, Pendulum, ks_initial_state_pool
 from pimbrl.training import RunDirectory, resolve_config
 
 from .test_dyna import DYNA_SMOKE, SMALL_MODEL
@@ -206,7 +206,7 @@ def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
         match=r"correction is a linear operator on a PDE's grid .*, not for pimbrl/CartPole-v0; name the coefficients",
     ):
         resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "correction"})
-    with pytest.raises(ConfigError, match="correction-penalty applies to the PDE environments"):
+    with pytest.raises(ConfigError, match="correction-penalty applies to the PDE systems"):
         resolve_config(
             "pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "masspole", "dyna.correction_penalty": 1.0}
         )
@@ -221,7 +221,7 @@ def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
         ({"dyna.coefficient_lr": 0.05}, "--dyna.coefficient-lr does nothing without --dyna.learn-coefficients"),
         ({"dyna.learn_coefficients": "nu", "dyna.correction_penalty": 1.0}, "does nothing without 'correction'"),
         ({"dyna.learn_coefficients": "nu,nu:0:1"}, "nu is given twice"),
-        ({"dyna.physics_prior": "nu=-1"}, "physics prior: burgers: nu must be a finite number >= 0, got -1.0"),
+        ({"dyna.physics_prior": "nu=-1"}, re.escape("physics prior: burgers: nu must be a finite number in [0, 1], got -1.0")),
         ({"dyna.physics_prior": "damping=0.5", "dyna.learn_coefficients": "damping:0:0.1"}, "lies outside its range"),
     ],
 )

@@ -10,12 +10,11 @@ import pytest
 import torch
 
 from pimbrl.cli import main
-from pimbrl.envs import BurgersTask, CartPoleTask, PendulumTask
-from pimbrl.experiments.model_eval import OUT_OF_SAMPLE
+from pimbrl.experiments.model_eval import out_of_sample
 from pimbrl.models import ConvLSTMModel, MLPModel, ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
-from pimbrl.physics import Burgers, CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.physics.kernels import build_pde_kernel
 from pimbrl.spaces import ActionAdapter
+from pimbrl.systems import Burgers, BurgersTask, CartPole, CartPoleTask, KuramotoSivashinsky, Pendulum, PendulumTask
 
 
 def _divisors(n: int) -> list[int]:
@@ -175,10 +174,10 @@ def test_model_eval_command_writes_errors_and_histograms(tmp_path, capsys) -> No
 def test_model_eval_out_of_sample_states_respect_the_physics_bounds() -> None:
     rng = np.random.default_rng(0)
     cart = CartPoleTask()
-    u = OUT_OF_SAMPLE["pimbrl/CartPole-v0"](cart, rng, 500)
+    u = out_of_sample("pimbrl/CartPole-v0")(cart, rng, 500)
     assert np.abs(u[:, 0]).max() < cart.physics.x_threshold
     assert np.abs(u[:, 2]).max() < cart.physics.theta_threshold_radians
     assert not np.asarray(cart.physics.terminated(u)).any()
     pend = PendulumTask()
-    u = OUT_OF_SAMPLE["pimbrl/Pendulum-v0"](pend, rng, 500)
+    u = out_of_sample("pimbrl/Pendulum-v0")(pend, rng, 500)
     assert np.abs(u[:, 1]).max() <= pend.physics.max_speed and np.abs(u[:, 1]).max() > 0.9 * pend.physics.max_speed

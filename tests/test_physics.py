@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from pimbrl.physics import Burgers, CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.physics.kernels import build_pde_kernel
+from pimbrl.systems import Burgers, CartPole, KuramotoSivashinsky, Pendulum
 
 
 def _ks_state(ks: KuramotoSivashinsky, rng: np.random.Generator, batch: int) -> np.ndarray:

@@ -10,11 +10,10 @@ import torch
 
 from pimbrl.cli import main
 from pimbrl.config import ConfigError
-from pimbrl.envs import BurgersTask
 from pimbrl.models import EquivariantConvModel, MLPModel, ModelEnv, PhysicsResidual, make_model
 from pimbrl.models.state_sources import available_sources, broad_actions, broad_states, parse_sources
-from pimbrl.physics import CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.spaces import ActionAdapter
+from pimbrl.systems import BurgersTask, CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.training import create_run, resolve_config, train
 
 
@@ -166,9 +165,9 @@ def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
 
 def test_the_study_measures_errors_in_the_states_own_geometry() -> None:
     """A pendulum prediction just across the +-pi seam is a small error, not (2 pi)^2."""
-    from pimbrl.envs import PendulumTask
     from pimbrl.experiments.model_study import _rollout_mse
     from pimbrl.models import TransitionData
+    from pimbrl.systems import PendulumTask
 
     task = PendulumTask()
     near_pi = torch.tensor([[np.pi - 1e-3, 0.0]], dtype=torch.float32)

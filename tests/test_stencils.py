@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from pimbrl.physics.burgers import BURGERS_D2, BURGERS_UPWIND
-from pimbrl.physics.ks import KS_D1, KS_D2, KS_D4, KS_UPWIND_BACKWARD, KS_UPWIND_FORWARD
 from pimbrl.physics.stencil import Stencil
+from pimbrl.systems.burgers import BURGERS_D2, BURGERS_UPWIND
+from pimbrl.systems.ks import KS_D1, KS_D2, KS_D4, KS_UPWIND_BACKWARD, KS_UPWIND_FORWARD
 
 
 def _f(x):

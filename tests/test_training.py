@@ -89,7 +89,7 @@ SMOKE = {
 
 @pytest.mark.parametrize("env", list(SMOKE))
 def test_cli_train_eval_plot_smoke(env: str, tmp_path, capsys, monkeypatch) -> None:
-    from pimbrl.envs import KSTask
+    from pimbrl.systems import KSTask
 
     run = tmp_path / "run"
     assert main(["train", env, "--run-dir", str(run), *SMOKE[env], *TINY]) == 0

@@ -55,10 +55,13 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     env_id = resolve_env_id(args.env)
     kwargs = {}
     if args.initial_states is not None:
-        if "KuramotoSivashinsky" not in env_id:
-            raise ValueError("--initial-states applies to the KS environment only")
         kwargs["initial_states"] = args.initial_states
-    env = gym.make(env_id, max_episode_steps=args.steps, **kwargs) if args.steps else gym.make(env_id, **kwargs)
+    try:
+        env = gym.make(env_id, max_episode_steps=args.steps, **kwargs) if args.steps else gym.make(env_id, **kwargs)
+    except TypeError as exc:
+        if args.initial_states is None or "initial_states" not in str(exc):
+            raise
+        raise ValueError(f"--initial-states applies to systems with initial-state pools (KS), not {env_id}") from None
     value = None if args.value is None else [float(v) for v in args.value.split(",")]
     policy = make_simple_policy(env.action_space, args.policy, np.random.default_rng(args.seed), value)
     record = run_episode(env, policy, seed=args.seed)
@@ -154,12 +157,13 @@ def budget_warnings(cfg: Any) -> list[str]:
 def config_warnings(cfg: Any) -> list[str]:
     """Everything ``pimbrl train`` and ``pimbrl compare`` warn about in a configuration.
 
-    :func:`budget_warnings`, then the preset values kept on another return scale
-    (:func:`~pimbrl.training.config.return_scale_warnings`).
+    A system without a preset (:func:`~pimbrl.training.config.preset_note`), :func:`budget_warnings`, then the
+    preset values kept on another return scale (:func:`~pimbrl.training.config.return_scale_warnings`).
     """
-    from .training.config import return_scale_warnings
+    from .training.config import preset_note, return_scale_warnings
 
-    return [*budget_warnings(cfg), *return_scale_warnings(cfg)]
+    note = preset_note(cfg.env)
+    return [*([note] if note else []), *budget_warnings(cfg), *return_scale_warnings(cfg)]
 
 
 def _check_run_dir(path: str | Path, flag: str = "--run-dir") -> None:
@@ -320,11 +324,11 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_model_eval(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .experiments import MODEL_EVAL_DEFAULTS, ModelEvalConfig, run_model_eval
+    from .experiments import ModelEvalConfig, model_eval_defaults, run_model_eval
     from .simulate import resolve_env_id
 
     env_id = resolve_env_id(args.env)
-    fields = {**MODEL_EVAL_DEFAULTS.get(env_id, {}), **overrides_from_args(args, ModelEvalConfig)}
+    fields = {**model_eval_defaults(env_id), **overrides_from_args(args, ModelEvalConfig)}
     cfg = dataclasses.replace(ModelEvalConfig(), **fields)
     if cfg.labels:  # the study: errors against the number of labelled transitions
         from .experiments.model_study import run_model_study
@@ -385,6 +389,7 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         threshold=args.threshold,
         run=not args.no_run,
         rerun=args.rerun,
+        imports=args.imports,
     )
     thr = result["threshold"]
     print(f"{env_id}: threshold {thr}")
@@ -464,13 +469,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("simulate", help="run one episode with a simple policy, print the return and plot it")
-    sim.add_argument("env", help="ks | burgers | cartpole | pendulum, or a registered Gymnasium id")
+    sim.add_argument(
+        "env", help="ks | burgers | cartpole | pendulum, a system's alias or id (see --import), or a registered Gymnasium id"
+    )
     sim.add_argument("--policy", choices=["zero", "random", "constant"], default="zero")
     sim.add_argument("--value", help="for --policy constant: one number, or comma-separated per action component")
     sim.add_argument("--seed", type=int, default=0, help="seeds the initial state and the random policy")
     sim.add_argument("--steps", type=int, default=None, help="episode length (default: the env's time limit)")
-    sim.add_argument("--initial-states", choices=["train", "test"], default=None, help="KS only: which initial-state pool")
+    sim.add_argument(
+        "--initial-states", choices=["train", "test"], default=None, help="systems with initial-state pools (KS): which pool"
+    )
     sim.add_argument("--out", help="PNG path (default: out/<env>_<policy>_seed<seed>.png)")
+    _add_import(sim)
     sim.set_defaults(func=_cmd_simulate)
 
     from .training.cli_args import add_train_flags
@@ -486,7 +496,7 @@ def build_parser() -> argparse.ArgumentParser:
         "env",
         nargs="?",
         default=None,
-        help="ks | burgers | cartpole | pendulum, a pimbrl id, or any Gymnasium id (e.g. Pendulum-v1)",
+        help="ks | burgers | cartpole | pendulum, a system's alias or id (see --import), or any Gymnasium id (e.g. Pendulum-v1)",
     )
     tr.add_argument(
         "--config",
@@ -499,6 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     tr.add_argument("--print-config", action="store_true", help="print the resolved configuration as JSON and exit")
     add_train_flags(tr)
+    _add_import(tr)
     tr.set_defaults(func=_cmd_train)
 
     rs = sub.add_parser("resume", help="continue a run from its last checkpoint")
@@ -510,6 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="first raise the run's budget to this many real steps (continue a finished run, e.g. to a threshold)",
     )
+    _add_import(rs)
     rs.set_defaults(func=_cmd_resume)
 
     ev = sub.add_parser("eval", help="evaluate a run's latest checkpoint on its test episodes")
@@ -530,12 +542,14 @@ def build_parser() -> argparse.ArgumentParser:
         "(runs trained with --dyna.select-episodes)",
     )
     ev.add_argument("--json", action="store_true", help="also print a JSON line")
+    _add_import(ev)
     ev.set_defaults(func=_cmd_eval)
 
     pl = sub.add_parser("plot", help="learning curves (mean test return with the min-max band) of run directories")
     pl.add_argument("run_dirs", nargs="+")
     pl.add_argument("--out", default="curves.png")
     pl.add_argument("--labels", nargs="*", default=None, help="one label per run directory")
+    _add_import(pl)
     pl.set_defaults(func=_cmd_plot)
 
     from .experiments import ModelEvalConfig
@@ -544,9 +558,10 @@ def build_parser() -> argparse.ArgumentParser:
         "model-eval",
         help="train a data-only and a physics-informed model on the same random-policy data; compare their errors",
     )
-    me.add_argument("env", help="ks | burgers | cartpole | pendulum")
+    me.add_argument("env", help="ks | burgers | cartpole | pendulum, or a system of yours that declares an out-of-sample set")
     me.add_argument("--run-dir", required=True, help="output directory (model_errors.csv, summary.json, model_errors.png)")
     add_arguments(me, ModelEvalConfig)
+    _add_import(me)
     me.set_defaults(func=_cmd_model_eval)
 
     cp = sub.add_parser(
@@ -571,6 +586,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a run directory that holds a run of another configuration (e.g. another --steps) is moved aside "
         "(to seed<k>.replaced-<time>) and trained again; without it, that is an error",
     )
+    _add_import(cp)
     cp.set_defaults(func=_cmd_compare, takes_extra=True)
 
     sw = sub.add_parser(
@@ -584,6 +600,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--address", default=None, help="address of an existing Ray cluster (e.g. ray://host:10001 or auto)")
     sw.add_argument("--no-ray", action="store_true", help="run the trials one after another in this process")
     sw.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all)")
+    _add_import(sw)
     sw.set_defaults(func=_cmd_sweep)
 
     fg = sub.add_parser(
@@ -598,8 +615,29 @@ def build_parser() -> argparse.ArgumentParser:
     fg.add_argument("dirs", nargs="+", help="run directory (several for curves)")
     fg.add_argument("--out", default=None, help="PNG path (default: <dir>/<kind>.png)")
     fg.add_argument("--lengths", default="3,8,40,120", help="rollouts: rollout lengths to show")
+    _add_import(fg)
     fg.set_defaults(func=_cmd_figure)
     return parser
+
+
+def _add_import(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--import",
+        dest="imports",
+        action="append",
+        default=[],
+        metavar="MODULE_OR_FILE",
+        help="import a module (from the working directory) or a .py file that declares systems of your own "
+        "(repeatable; docs/systems.md); installed packages' systems (entry points pimbrl.systems) load by themselves",
+    )
+
+
+def _load_systems(args: argparse.Namespace) -> None:
+    """Register the systems of installed packages and of ``--import`` (a one-line error for a bad one)."""
+    from .systems import import_systems, load_entry_points
+
+    load_entry_points()
+    import_systems(args.imports)
 
 
 def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
@@ -677,6 +715,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--steps must be >= 1")
     prefix = f"pimbrl {args.command}: error:"
     try:
+        _load_systems(args)
         return int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
     except (ConfigError, ValueError) as exc:
         print(f"{prefix} {exc}", file=sys.stderr)

@@ -54,7 +54,7 @@ D = TypeVar("D", bound="DataclassInstance")
 #: transition models with the prior's coarse scheme inside (pimbrl.models.hybrid), for any system
 PHYSICS_MODEL_KINDS = ("physics", "hybrid")
 #: every kind of transition model (pimbrl.models.make_model): the networks, then the physics-based ones
-MODEL_KINDS = ("convlstm", "equivariant", *PHYSICS_MODEL_KINDS)
+MODEL_KINDS = ("convlstm", "equivariant", "mlp", *PHYSICS_MODEL_KINDS)
 
 #: Upper bounds of the sizes and counts of the configurations (docs/training.md, section 'Bounds'): far
 #: beyond any run this CPU library can make, low enough that a typo gives a message instead of an

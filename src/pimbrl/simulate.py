@@ -10,32 +10,11 @@ import gymnasium as gym
 import numpy as np
 
 from .envs import PhysicsEnv
+from .systems import resolve_env_id
 
-__all__ = ["ENV_ALIASES", "EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode"]
-
-#: short names accepted wherever an environment id is expected
-ENV_ALIASES = {
-    "ks": "pimbrl/KuramotoSivashinsky-v0",
-    "kuramoto-sivashinsky": "pimbrl/KuramotoSivashinsky-v0",
-    "burgers": "pimbrl/Burgers-v0",
-    "cartpole": "pimbrl/CartPole-v0",
-    "pendulum": "pimbrl/Pendulum-v0",
-}
+__all__ = ["EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode"]
 
 Policy = Callable[[np.ndarray], Any]
-
-
-def resolve_env_id(name: str) -> str:
-    """Map an alias (``ks``, ``burgers``, ``cartpole``, ``pendulum``) or a registered id to a Gymnasium id."""
-    env_id = ENV_ALIASES.get(name.lower(), name)
-    if env_id not in gym.registry:
-        import difflib
-
-        known = ", ".join(sorted(ENV_ALIASES))
-        close = difflib.get_close_matches(name, [*ENV_ALIASES, *gym.registry], n=1, cutoff=0.6)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"unknown environment {name!r}{hint}: use one of {known} or a registered Gymnasium id")
-    return env_id
 
 
 @dataclass

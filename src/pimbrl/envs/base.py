@@ -46,6 +46,15 @@ __all__ = ["PHYSICS_INFO_KEYS", "PhysicsEnv", "PhysicsVectorEnv"]
 PHYSICS_INFO_KEYS = ("state", "physical_action", "step_index")
 
 
+def _checked_options(options: Any) -> dict[str, Any]:
+    """``reset``'s ``options``: a dict (or ``None``), else a one-line ``TypeError`` saying what it must be."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise TypeError(f"reset(options=...) must be a dict such as {{'initial_state': u}} or None, got {options!r}")
+    return options
+
+
 class PhysicsEnv(gym.Env):
     """Single-environment shell; subclasses set :attr:`task_class` and document the task."""
 
@@ -84,7 +93,7 @@ class PhysicsEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """Start an episode from ``options["initial_state"]`` if given, else from a sampled initial state."""
         super().reset(seed=seed)
-        options = options or {}
+        options = _checked_options(options)
         if options.get("initial_state") is not None:
             self._u = self.task.check_initial_state(options["initial_state"])[None].copy()
         else:
@@ -200,7 +209,7 @@ class PhysicsVectorEnv(VectorEnv):
         if isinstance(seed, list):
             seed = seed[0] if seed else None
         super().reset(seed=seed)
-        options = options or {}
+        options = _checked_options(options)
         mask = np.asarray(options.get("reset_mask", np.ones(self.num_envs, dtype=bool)), dtype=bool)
         if mask.shape != (self.num_envs,):
             raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")

@@ -14,13 +14,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from .model_eval_config import DEFAULTS as MODEL_EVAL_DEFAULTS
 from .model_eval_config import ModelEvalConfig
+from .model_eval_config import defaults as model_eval_defaults
 
 if TYPE_CHECKING:
     from .model_eval import run_model_eval
 
-__all__ = ["MODEL_EVAL_DEFAULTS", "ModelEvalConfig", "run_model_eval"]
+__all__ = ["ModelEvalConfig", "model_eval_defaults", "run_model_eval"]
 
 
 def __getattr__(name: str) -> Any:

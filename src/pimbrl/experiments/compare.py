@@ -330,15 +330,23 @@ def _last_line(path: Path) -> str:
     return lines[-1].strip() if lines else ""
 
 
-def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] = print, status: bool = True) -> list[RunSpec]:
+def run_all(
+    specs: Sequence[RunSpec],
+    jobs: int = 1,
+    log: Callable[[str], None] = print,
+    status: bool = True,
+    imports: Sequence[str] = (),
+) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
     A new run's configuration is written to ``<run>/config.request.json`` and its process started as
     ``pimbrl train --config <that file> --run-dir <run> --quiet``; an interrupted run is resumed
     (``pimbrl resume <run>``). A child's output goes to ``<run>/compare.log``. With ``status``, one line
-    per running child is shown on stderr (:func:`child_status`).
+    per running child is shown on stderr (:func:`child_status`). ``imports``: the ``--import`` arguments each
+    child gets (the modules or files that declare a user's system).
     """
     pending = []
+    imported = [arg for spec in imports for arg in ("--import", spec)]
     for spec in specs:
         run_status = RunDirectory(spec.path).status
         if run_status == "finished":
@@ -346,9 +354,20 @@ def run_all(specs: Sequence[RunSpec], jobs: int = 1, log: Callable[[str], None] 
         if run_status is None:
             request = Path(spec.path) / REQUEST_FILE
             atomic_write_bytes(request, (json.dumps(to_dict(spec.config), indent=2) + "\n").encode())
-            cmd = [sys.executable, "-m", "pimbrl.cli", "train", "--config", str(request), "--run-dir", str(spec.path), "--quiet"]
+            cmd = [
+                sys.executable,
+                "-m",
+                "pimbrl.cli",
+                "train",
+                "--config",
+                str(request),
+                "--run-dir",
+                str(spec.path),
+                "--quiet",
+                *imported,
+            ]
         else:
-            cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet"]
+            cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet", *imported]
         pending.append((spec, cmd))
     failed: list[RunSpec] = []
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
@@ -561,6 +580,7 @@ def compare(
     run: bool = True,
     rerun: bool = False,
     status: bool = True,
+    imports: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run (what is missing of) a comparison and write its figure and tables.
 
@@ -581,7 +601,7 @@ def compare(
     if run:
         check_reuse(specs, rerun=rerun, log=log)
         root.mkdir(parents=True, exist_ok=True)
-    failed = run_all(specs, jobs=jobs, log=log, status=status) if run else []
+    failed = run_all(specs, jobs=jobs, log=log, status=status, imports=imports) if run else []
     if threshold is None:
         threshold = resolve_config(env_id, {"method": "mfrl"}).threshold
     result = summarize_runs(specs, threshold)

@@ -3,7 +3,7 @@
 1. Collect ``transitions`` real transitions with a uniformly random policy from the task's own initial
    states (the *in-sample* distribution); hold out ``test_transitions`` of them.
 2. Collect ``test_transitions`` transitions from *another* distribution (out-of-sample, per environment:
-   see :data:`OUT_OF_SAMPLE`).
+   declared by each system: :attr:`pimbrl.systems.System.out_of_sample`).
 3. Train two models from the same initialisation for the same number of gradient steps: ``data`` with
    ``L_D`` only; ``physics`` with ``L_D + w_E L_E``, where ``L_E`` is applied to unlabelled pairs: the
    training states with fresh random actions, and states the model itself imagines from them (short
@@ -30,58 +30,20 @@ from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.residual import Scheme
-from .model_eval_config import DEFAULTS, ModelEvalConfig
+from ..systems import get_system
+from .model_eval_config import ModelEvalConfig, defaults
 
-__all__ = ["OUT_OF_SAMPLE", "ModelEvalConfig", "collect_transitions", "run_model_eval"]
-
-
-#: control steps of strong alternating actuation that take KS test states off the chaotic set
-KS_FORCING_STEPS = 20
-#: half-widths of the Cart-Pole out-of-sample box ``(x, x_dot, theta, theta_dot)``: position and angle
-#: stay inside the physics' termination bounds (``x_threshold``, ``theta_threshold_radians``; tested)
-CARTPOLE_WIDE_BOX = np.array([2.0, 2.0, 0.18, 2.0])
+__all__ = ["ModelEvalConfig", "collect_transitions", "out_of_sample", "run_model_eval"]
 
 
-def _ks_forced_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """KS test-pool states driven far from the chaotic set.
-
-    The drive is the strongest alternating actuation (+max, -max, ...) for :data:`KS_FORCING_STEPS`
-    control steps.
-    """
-    phys = task.physics
-    pool = task.test_initial_states(task.test_pool_size, seed=0)  # type: ignore[attr-defined]  # KSTask
-    u = pool[rng.integers(len(pool), size=n)]
-    pattern = np.where(np.arange(phys.action_dim) % 2 == 0, phys.action_high, phys.action_low)
-    a = np.tile(pattern, (n, 1)) * rng.choice([-1.0, 1.0], size=(n, 1))
-    for _ in range(KS_FORCING_STEPS):
-        u, _ = phys.advance(u, a, np.zeros(n))
-    return u
-
-
-def _burgers_large_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """The task's Burgers initial shapes doubled: twice the amplitude and twice the offset."""
-    c = rng.uniform(0, 1, (n, 1))[:, 0]
-    return 2.0 * task.initial_state(c)  # type: ignore[attr-defined]  # BurgersTask
-
-
-def _pendulum_fast_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """Pendulum states uniform over the whole state space, up to the speed limit."""
-    max_speed = task.physics.max_speed  # type: ignore[attr-defined]  # Pendulum
-    return np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-max_speed, max_speed, n)], axis=1)
-
-
-def _cartpole_wide_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
-    """Cart-Pole states far from upright rest: larger positions, speeds and angles (still inside the bounds)."""
-    return rng.uniform(-CARTPOLE_WIDE_BOX, CARTPOLE_WIDE_BOX, (n, 4))
-
-
-#: initial-state samplers of the out-of-sample test distributions
-OUT_OF_SAMPLE: dict[str, Callable[[Task, np.random.Generator, int], np.ndarray]] = {
-    "pimbrl/KuramotoSivashinsky-v0": _ks_forced_states,
-    "pimbrl/Burgers-v0": _burgers_large_states,
-    "pimbrl/Pendulum-v0": _pendulum_fast_states,
-    "pimbrl/CartPole-v0": _cartpole_wide_states,
-}
+def out_of_sample(env_id: str) -> Callable[[Task, np.random.Generator, int], np.ndarray]:
+    """The out-of-sample initial states its system declares for ``env_id`` (a one-line error where none is)."""
+    system = get_system(env_id)
+    if system is None or system.out_of_sample is None:
+        raise ValueError(
+            f"model-eval needs a system that declares an out-of-sample set (System.out_of_sample), and {env_id!r} declares none"
+        )
+    return system.out_of_sample
 
 
 def _random_env_actions(task: Task, rng: np.random.Generator, n: int) -> Any:
@@ -151,10 +113,9 @@ def run_model_eval(
     env_id: str, run_dir: str | Path, config: ModelEvalConfig | None = None, log: Callable[[str], None] = print
 ) -> dict[str, Any]:
     """Run the comparison for ``env_id`` and write its outputs into ``run_dir``; returns the summary."""
-    cfg = config or ModelEvalConfig(**DEFAULTS.get(env_id, {}))
+    cfg = config or ModelEvalConfig(**defaults(env_id))
     validate(cfg)
-    if env_id not in OUT_OF_SAMPLE:
-        raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
+    oos = out_of_sample(env_id)
     torch.set_num_threads(cfg.threads)
     out_dir = Path(run_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -168,7 +129,6 @@ def run_model_eval(
     in_data = collect_transitions(task, rng, cfg.transitions + cfg.test_transitions, task.sample_initial_states)
     perm = torch.from_numpy(rng.permutation(len(in_data)))
     train, test_in = in_data.take(perm[cfg.test_transitions :]), in_data.take(perm[: cfg.test_transitions])
-    oos = OUT_OF_SAMPLE[env_id]
     test_out = collect_transitions(task, rng, cfg.test_transitions, lambda g, n: oos(task, g, n), max_steps=10)
     log(f"{env_id}: {len(train)} training, {len(test_in)} in-sample and {len(test_out)} out-of-sample test transitions")
 

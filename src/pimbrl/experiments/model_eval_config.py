@@ -7,12 +7,12 @@ from typing import Any
 
 from ..config import MAX_BATCH, MAX_LR, MAX_SEED, MAX_STEPS, MAX_TRANSITIONS, at_most, non_negative, one_of, param, positive
 
-__all__ = ["DEFAULTS", "ModelEvalConfig"]
+__all__ = ["ModelEvalConfig", "defaults"]
 
 
 @dataclass(frozen=True)
 class ModelEvalConfig:
-    """Settings of `pimbrl model-eval` (defaults per environment in :data:`DEFAULTS`)."""
+    """Settings of `pimbrl model-eval` (defaults per system: :func:`defaults`)."""
 
     transitions: int = param(
         2_000,
@@ -73,9 +73,9 @@ class ModelEvalConfig:
     )
 
 
-DEFAULTS: dict[str, dict[str, Any]] = {
-    "pimbrl/KuramotoSivashinsky-v0": {"transitions": 6_000, "steps": 3_000},
-    "pimbrl/Burgers-v0": {"transitions": 1_200, "steps": 3_000},
-    "pimbrl/Pendulum-v0": {"transitions": 2_000, "steps": 3_000},
-    "pimbrl/CartPole-v0": {"transitions": 1_000, "steps": 3_000},
-}
+def defaults(env_id: str) -> dict[str, Any]:
+    """The model-study settings the system ``env_id`` declares (``System.model_eval``; none for other ids)."""
+    from ..systems import get_system
+
+    system = get_system(env_id)
+    return dict(system.model_eval) if system is not None else {}

@@ -22,7 +22,7 @@ is that scheme with the coefficients fitted to the labels (no network). ``models
 test transitions depend only on the seed, so rows of separate studies with the same seeds compare).
 
 All are tested on the same held-out in-sample transitions and on the out-of-sample transitions of
-:data:`~pimbrl.experiments.model_eval.OUT_OF_SAMPLE`, one step ahead and ``rollout_lengths`` chained
+the system's out-of-sample set (:attr:`pimbrl.systems.System.out_of_sample`), one step ahead and ``rollout_lengths`` chained
 steps ahead (open loop, the same random actions as the truth). Outputs: ``study.csv`` (one row per seed,
 labels, model, split, horizon: mean, median and 90th percentile of the per-transition MSE),
 ``study.json`` and ``study.png`` (error against labels, mean over seeds with the min-max band).
@@ -47,7 +47,7 @@ from ..models.coefficients import LearnedCoefficients
 from ..models.residual import Scheme
 from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
 from ..physics import Physics
-from .model_eval import OUT_OF_SAMPLE, ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions
+from .model_eval import ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions, out_of_sample
 
 __all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
 
@@ -157,12 +157,11 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
 
     validate(cfg)
     torch.set_num_threads(cfg.threads)
-    if env_id not in OUT_OF_SAMPLE:
-        raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
+    oos = out_of_sample(env_id)
     env_kwargs: dict[str, Any] = dict(parse_prior(cfg.env_coefficients))
     env = gym.make(env_id, **env_kwargs)
     if not isinstance(env.unwrapped, PhysicsEnv):
-        raise ValueError(f"model-eval supports the pimbrl environments ({', '.join(OUT_OF_SAMPLE)}), not {env_id!r}")
+        raise ValueError(f"model-eval needs a pimbrl environment (a PhysicsEnv, whose task and physics it reads), not {env_id!r}")
     task = env.unwrapped.task
     prior = task.physics.with_coefficients(**parse_prior(cfg.physics_prior))
     learned = parse_learned(cfg.learn_coefficients)
@@ -206,7 +205,7 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
         pool = collect_transitions(task, rng, n_obs, task.sample_initial_states)
         tests = {
             "in": _trajectories(task, rng, cfg.test_transitions, max(horizons), task.sample_initial_states),
-            "out": _trajectories(task, rng, cfg.test_transitions, max(horizons), lambda g, n: OUT_OF_SAMPLE[env_id](task, g, n)),
+            "out": _trajectories(task, rng, cfg.test_transitions, max(horizons), lambda g, n: oos(task, g, n)),
         }
         observed = pool.state[: max(cfg.seed_states, 1)]
         for n_labels in labels:

@@ -23,6 +23,7 @@ range).
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import cast
 
 import numpy as np
 import torch
@@ -113,11 +114,11 @@ class LearnedCoefficients(torch.nn.Module):
 
     def __init__(self, physics: Physics, learned: Mapping[str, tuple[float, float] | None], penalty: float = 1e-6) -> None:
         super().__init__()
-        if not isinstance(physics, SemilinearPDE) and not physics.tensor_coefficients:
+        if not physics.is_field and not physics.tensor_coefficients:
             raise ValueError(f"{physics.name}: its coefficients cannot be learned (its equation takes no tensor coefficients)")
         if not learned:
             raise ValueError("no coefficient to learn: name at least one (e.g. nu)")
-        if CORRECTION in learned and not isinstance(physics, SemilinearPDE):
+        if CORRECTION in learned and not physics.is_field:
             raise ValueError(
                 f"the {CORRECTION} is a linear operator on a PDE's grid; {physics.name} is an ODE system: "
                 "name the coefficients to learn (e.g. a missing friction, prior 0)"
@@ -152,8 +153,8 @@ class LearnedCoefficients(torch.nn.Module):
         #: the linear correction's coefficients (``None``: no correction)
         self.correction: torch.nn.Parameter | None = None
         if CORRECTION in learned:
-            assert isinstance(physics, SemilinearPDE)  # refused above for an ODE system
-            n, dx, modes = physics.n, physics.dx, physics.n // 2 + 1
+            field = cast(SemilinearPDE, physics)  # refused above for a system that is not a field
+            n, dx, modes = field.n, field.dx, field.n // 2 + 1
             symbols = np.stack([s.symbol(n)[:modes] / dx**j for j, s in enumerate(CORRECTION_STENCILS)])
             scale = 1.0 / (physics.control_dt * np.abs(symbols).max(axis=1))
             self._basis: torch.Tensor

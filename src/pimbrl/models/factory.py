@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 from ..config import MODEL_KINDS, PHYSICS_MODEL_KINDS
 from ..physics import Physics
@@ -29,7 +30,8 @@ def make_model(
     """The transition model for ``physics``.
 
     Networks: for the PDE systems the paper's ConvLSTM (``kind="convlstm"``) or the translation-equivariant
-    convolutional model (``kind="equivariant"``); an MLP for the ODE systems (whatever ``kind`` names).
+    convolutional model (``kind="equivariant"``); an MLP for the ODE systems (whatever ``kind``
+    names) that emits one state per solver step.
     With the physics inside (:mod:`pimbrl.models.hybrid`, any system): the prior's coarse scheme alone
     (``kind="physics"``) or with a correction network (``kind="hybrid"``, scaled by ``correction_scale``);
     ``scheme`` gives that scheme (a run passes its physics residual, so that the model follows the learned
@@ -38,13 +40,13 @@ def make_model(
     """
     if kind not in MODELS:
         raise ValueError(f"model kind must be one of {', '.join(MODELS)}, got {kind!r}")
-    pde = isinstance(physics, SemilinearPDE)
     if kind in PHYSICS_MODEL_KINDS:
         if scheme is None:
             scheme = PhysicsResidual(physics, PhysicsResidual.states_per_step(physics, n_intermediate))
         return PhysicsModel(scheme) if kind == "physics" else HybridModel(scheme, correction_scale, hidden=hidden)
-    if not pde:
-        return MLPModel(physics, hidden=hidden, predict_increment=predict_increment)
+    if not physics.is_field:  # one state per solver step: the equation's own intermediate states
+        return MLPModel(physics, hidden=hidden, predict_increment=predict_increment, n_intermediate=physics.substeps)
+    field = cast(SemilinearPDE, physics)
     if kind == "equivariant":
-        return EquivariantConvModel(physics, n_intermediate=n_intermediate)  # type: ignore[arg-type]
-    return ConvLSTMModel(physics, n_intermediate=n_intermediate, predict_increment=predict_increment)  # type: ignore[arg-type]
+        return EquivariantConvModel(field, n_intermediate=n_intermediate)
+    return ConvLSTMModel(field, n_intermediate=n_intermediate, predict_increment=predict_increment)

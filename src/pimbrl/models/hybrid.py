@@ -27,6 +27,7 @@ the coefficients are fitted by :meth:`PhysicsResidual.coefficient_loss` alone).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
 import torch
@@ -48,7 +49,7 @@ class PhysicsModel(TransitionModel):
     """
 
     def __init__(self, scheme: PhysicsResidual) -> None:
-        super().__init__(scheme.physics, per_feature=not isinstance(scheme.physics, SemilinearPDE))
+        super().__init__(scheme.physics, per_feature=not scheme.physics.is_field)
         self.n_intermediate = scheme.n
         self.scheme = scheme  # a plain object, not a submodule: its coefficients are saved by the trainer
 
@@ -82,11 +83,11 @@ class HybridModel(PhysicsModel):
         self.correction_scale = float(correction_scale)
         physics = scheme.physics
         self.net: EquivariantConvModel | MLPModel
-        if isinstance(physics, SemilinearPDE):
-            self.net = EquivariantConvModel(physics, n_intermediate=scheme.n)
+        if physics.is_field:
+            self.net = EquivariantConvModel(cast(SemilinearPDE, physics), n_intermediate=scheme.n)
             last: nn.Module = self.net.out.conv
         else:
-            self.net = MLPModel(physics, hidden=hidden)
+            self.net = MLPModel(physics, hidden=hidden, n_intermediate=scheme.n)
             last = self.net.net[-1]
         assert isinstance(last, nn.Conv1d | nn.Linear)
         assert last.bias is not None

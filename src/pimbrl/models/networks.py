@@ -89,15 +89,22 @@ class TransitionModel(nn.Module):
 class MLPModel(TransitionModel):
     """``u_{t+1} = canonical(u_t + delta_std * MLP(normalised u_t, scaled a_t))`` (or the absolute state).
 
-    ``canonical`` is the physics' state map (it wraps the pendulum's angle), so increments never see the
+    With ``n_intermediate = N > 1`` (an ODE with ``N`` solver steps per control step) the MLP emits ``N``
+    states, ``u_{t+i/N} = canonical(u_t + delta_std * MLP_i(...))``, the last being ``u_{t+1}``: the physics loss
+    checks each solver step. ``canonical`` is the physics' state map (it wraps the pendulum's angle), so increments never see the
     jump at +-pi; ``constrain`` its hard constraints (the pendulum's speed limit), which a prediction then
     cannot violate.
     """
 
-    def __init__(self, physics: Physics, hidden: Sequence[int] = (256, 256), predict_increment: bool = True) -> None:
+    def __init__(
+        self, physics: Physics, hidden: Sequence[int] = (256, 256), predict_increment: bool = True, n_intermediate: int = 1
+    ) -> None:
         super().__init__(physics, per_feature=True)
+        if n_intermediate < 1:
+            raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
+        self.n_intermediate = int(n_intermediate)
         self.predict_increment = predict_increment
-        sizes = [physics.state_dim + physics.action_dim, *hidden, physics.state_dim]
+        sizes = [physics.state_dim + physics.action_dim, *hidden, physics.state_dim * self.n_intermediate]
         layers: list[nn.Module] = []
         for i in range(len(sizes) - 1):
             layers.append(nn.Linear(sizes[i], sizes[i + 1]))
@@ -106,16 +113,18 @@ class MLPModel(TransitionModel):
         self.net = nn.Sequential(*layers)
 
     def increments(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """The predicted increment ``delta_std * MLP(...)`` ``(B, 1, state_dim)`` (``predict_increment`` models)."""
-        return (self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1)) * self.delta_std)[:, None, :]
+        """The predicted increments ``delta_std * MLP(...)`` ``(B, N, state_dim)`` (``predict_increment`` models)."""
+        out = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1))
+        return out.reshape(len(u), self.n_intermediate, -1) * self.delta_std
 
     def forward(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """The next state as ``(B, 1, state_dim)``: a single "intermediate" state."""
+        """The ``N`` states of the control step ``(B, N, state_dim)`` (one for an ODE with one solver step)."""
         if self.predict_increment:
-            nxt = u + self.increments(u, a)[:, 0]
+            states = u[:, None, :] + self.increments(u, a)
         else:
-            nxt = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1)) * self.state_std + self.state_mean
-        return self.physics.constrain(self.physics.canonical(nxt))[:, None, :]
+            out = self.net(torch.cat([self.normalize(u), self.scale_action(a)], dim=-1))
+            states = out.reshape(len(u), self.n_intermediate, -1) * self.state_std + self.state_mean
+        return self.physics.constrain(self.physics.canonical(states))
 
 
 class CircularConv(nn.Module):

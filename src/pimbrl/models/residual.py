@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import torch
@@ -86,7 +86,7 @@ class PhysicsResidual:
         self.physics = physics
         self.n = int(n_intermediate)
         self.h = physics.control_dt / self.n
-        pde = physics if isinstance(physics, SemilinearPDE) else None
+        pde = cast(SemilinearPDE, physics) if physics.is_field else None
         if pde is None:
             if self.n != physics.substeps:
                 raise ValueError(
@@ -138,7 +138,7 @@ class PhysicsResidual:
     @staticmethod
     def states_per_step(physics: Physics, n_intermediate: int) -> int:
         """The states a model emits per control step: ``n_intermediate`` for a PDE, one per solver step for an ODE."""
-        return n_intermediate if isinstance(physics, SemilinearPDE) else physics.substeps
+        return n_intermediate if physics.is_field else physics.substeps
 
     def coarse_step(self, u: torch.Tensor, a: torch.Tensor, fit: bool = False) -> torch.Tensor:
         """``Phi_h(u, a)`` for states ``(M, n)`` and physical actions ``(M, action_dim)``.

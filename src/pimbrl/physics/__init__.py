@@ -1,10 +1,10 @@
-"""Governing equations, discretisations, rewards and residuals: one object per system."""
+"""What is derived from any equation: the :class:`Physics` interface, stencils, integrators, kernels.
+
+The systems themselves (Cart-Pole, Pendulum, Burgers, Kuramoto-Sivashinsky, a user's own) are declared in
+:mod:`pimbrl.systems`, one module each.
+"""
 
 from .base import Physics
-from .burgers import Burgers
-from .cartpole import CartPole
-from .ks import KuramotoSivashinsky
-from .pendulum import Pendulum, wrap_angle
 from .stencil import Stencil
 
-__all__ = ["Burgers", "CartPole", "KuramotoSivashinsky", "Pendulum", "Physics", "Stencil", "wrap_angle"]
+__all__ = ["Physics", "Stencil"]

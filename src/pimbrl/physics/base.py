@@ -50,15 +50,32 @@ def records_arguments(init: InitT) -> InitT:
     return wrapper  # type: ignore[return-value]
 
 
-def check_coefficient(system: str, name: str, value: float, *, positive: bool = False, nonnegative: bool = False) -> float:
-    """``value`` as a float if it is finite (and ``> 0`` where ``positive``, ``>= 0`` where ``nonnegative``).
+def check_coefficient(
+    system: str,
+    name: str,
+    value: float,
+    *,
+    positive: bool = False,
+    nonnegative: bool = False,
+    low: float = -math.inf,
+    high: float = math.inf,
+) -> float:
+    """``value`` as a float if it is a finite number within the system's physical bounds.
+
+    That is ``> 0`` where ``positive``, ``>= 0`` where ``nonnegative``, and within ``[low, high]``.
 
     Raises:
-        ValueError: a one-line message naming ``system`` and the argument ``name``.
+        ValueError: a one-line message naming ``system``, the argument ``name`` and what it must be.
     """
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{system}: {name} must be a number, got {value!r}")
     v = float(value)
-    if not math.isfinite(v) or (positive and not v > 0) or (nonnegative and not v >= 0):
-        need = " > 0" if positive else " >= 0" if nonnegative else ""
+    if not math.isfinite(v) or (positive and not v > 0) or (nonnegative and not v >= 0) or not low <= v <= high:
+        if math.isfinite(high) or math.isfinite(low):
+            left = "(0" if positive else "[0" if nonnegative else f"[{low:g}"
+            need = f" in {left}, {high:g}]"
+        else:
+            need = " > 0" if positive else " >= 0" if nonnegative else ""
         raise ValueError(f"{system}: {name} must be a finite number{need}, got {value!r}")
     return v
 
@@ -231,6 +248,10 @@ class Physics(ABC):
         """
         return None
 
+    #: the state is a field on a periodic 1-D grid with a linear part and actuator shapes (the PDE systems,
+    #: :class:`~pimbrl.physics.pde.SemilinearPDE`): what the convolutional models, the ETDRK4 coarse step and
+    #: the field sources of the physics loss need. Models choose their path by this, not by a class.
+    is_field: bool = False
     #: the equation is invariant under circular shifts of a periodic grid (PDEs on a periodic domain)
     shift_symmetric: bool = False
     #: the equation is invariant under the reflection ``u(x) -> -u(-x)`` (odd-symmetric PDEs: Burgers, KS)

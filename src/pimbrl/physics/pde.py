@@ -47,6 +47,7 @@ class SemilinearPDE(Physics):
     # u(x) -> -u(-x) (L holds even derivatives only); KS's discrete scheme keeps the reflection exactly (tested),
     # Burgers' upwinding only approximately. Either way a shifted or reflected state is just another state on
     # which the residual (exact for any state) can be evaluated: the symmetries make plausible states.
+    is_field = True
     shift_symmetric = True
     reflection_symmetric = True
     nonlinear_coef: float
@@ -164,7 +165,8 @@ class SemilinearPDE(Physics):
         """The coarse exponential integrator with ``steps_per_control`` steps per control step."""
         if steps_per_control < 1:
             raise ValueError(f"steps_per_control must be >= 1, got {steps_per_control}")
-        return ETDRK4(self.linear, self.n, self.control_dt / steps_per_control)
+        linear = self.linear if isinstance(self.linear, Stencil) else self.linear.symbol(self.n)[: self.n // 2 + 1]
+        return ETDRK4(linear, self.n, self.control_dt / steps_per_control)
 
     # ------------------------------------------------------------------ fast simulator
     @abstractmethod

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .collector import Collector
-    from .config import METHODS, POLICIES, PRESETS, DynaConfig, TrainConfig, resolve_config
+    from .config import METHODS, POLICIES, DynaConfig, TrainConfig, resolve_config
     from .dyna import PHASES, DynaModel
     from .evaluation import EvalResult, Evaluator
     from .logger import RunLogger
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 _WHERE = {
     "Collector": "collector",
     "METHODS": "config",
-    "PRESETS": "config",
+    "preset_of": "config",
     "DynaConfig": "config",
     "TrainConfig": "config",
     "resolve_config": "config",
@@ -54,7 +54,6 @@ __all__ = [
     "METHODS",
     "PHASES",
     "POLICIES",
-    "PRESETS",
     "STREAM_KEYS",
     "Collector",
     "DynaConfig",
@@ -72,6 +71,7 @@ __all__ = [
     "create_run",
     "load_run",
     "open_run",
+    "preset_of",
     "resolve_config",
     "resume_training",
     "run_training",

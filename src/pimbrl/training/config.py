@@ -12,6 +12,7 @@ nothing for the chosen method, agent or environment (``dyna.*`` with mfrl, SAC's
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import functools
@@ -48,9 +49,9 @@ from ..config import (
 )
 
 __all__ = [
+    "EXTERNAL_PRESETS",
     "METHODS",
     "POLICIES",
-    "PRESETS",
     "DynaConfig",
     "TrainConfig",
     "changed_env_kwargs",
@@ -62,6 +63,7 @@ __all__ = [
     "inapplicable_reason",
     "is_pde_env",
     "load_config_file",
+    "preset_of",
     "resolve_config",
     "return_scale_warnings",
     "typed_overrides",
@@ -80,7 +82,7 @@ class DynaConfig:
     """Settings of the model-based methods (mbrl, pimbrl): the model, its training and its use.
 
     Defaults follow the paper's Table 2 where the paper gives a value (lambda, l_M, n_sM, n_sR); presets
-    per environment override them (see PRESETS and docs/methods.md for every change and why).
+    per environment override them (see preset_of and docs/methods.md for every change and why).
     """
 
     threshold: float = param(1e-2, "lambda: held-out next-state MSE below which the model generates imagined data", positive())
@@ -157,9 +159,9 @@ class DynaConfig:
     )
     model: str = param(
         "convlstm",
-        "the model: convlstm (the paper's, PDEs) or equivariant (fully convolutional, PDEs) -- the ODEs' is an MLP "
-        "-- or, for any system, the prior's coarse scheme itself: physics (no network) or hybrid (the scheme plus "
-        "a correction network that starts at zero; pimbrl.models.hybrid)",
+        "the model: convlstm (the paper's, PDEs) or equivariant (fully convolutional, PDEs) -- the ODEs' is an "
+        "MLP, recorded as mlp -- or, for any system, the prior's coarse scheme itself: physics (no network) or hybrid "
+        "(the scheme plus a correction network that starts at zero; pimbrl.models.hybrid)",
         one_of(*MODEL_KINDS),
     )
     correction_scale: float = param(
@@ -257,76 +259,25 @@ class TrainConfig:
     )
 
 
-#: Per-environment presets. Model-free part: the paper's TD3 table (gamma 0.99, 0.977 for KS; 50 updates
-#: every 50 steps; Adam 1e-3; 2x256 networks) and episode lengths; 100 test episodes, 200 for KS.
-#: ``model_based`` applies on top for mbrl and pimbrl: the paper's Table 2 (lambda, l_M, n_sM, n_sR) with
-#: the changes listed in docs/methods.md. All methods of one environment share budget and warm-up.
-PRESETS: dict[str, dict[str, Any]] = {
-    "pimbrl/CartPole-v0": {
-        "total_steps": 15_000,
-        "warmup_steps": 1_000,
-        "update_after": 1_000,
-        "eval_every": 250,
-        "threshold": 200.0,
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {"threshold": 1e-4, "rollout_length": 200, "start_model_after": 800, "start_physics_after": 1_000},
-        },
-    },
-    "pimbrl/Pendulum-v0": {
-        "total_steps": 15_000,
-        "warmup_steps": 1_000,
-        "update_after": 1_000,
-        "eval_every": 500,
-        "threshold": -200.0,
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {"threshold": 1e-2, "rollout_length": 200, "start_model_after": 600, "start_physics_after": 1_000},
-        },
-    },
+#: presets of Gymnasium environments that are not pimbrl systems (for model-free comparisons)
+EXTERNAL_PRESETS: dict[str, dict[str, Any]] = {
     "Pendulum-v1": {"total_steps": 15_000, "warmup_steps": 1_000, "update_after": 1_000, "eval_every": 500, "threshold": -200.0},
-    "pimbrl/Burgers-v0": {
-        "total_steps": 3_000,
-        "warmup_steps": 120,
-        "update_after": 120,
-        "update_every": 60,
-        "eval_every": 120,
-        "threshold": -11.0,  # reached by every tuned MFRL seed, but only after 960-2040 of its 3,000 steps
-        "checkpoint_every": 600,
-        "log_every": 120,
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {"threshold": 1e-2, "rollout_length": 1, "start_model_after": 120, "start_physics_after": 120},
-        },
-    },
-    "pimbrl/KuramotoSivashinsky-v0": {
-        "total_steps": 200_000,
-        "warmup_steps": 4_000,
-        "update_after": 4_000,
-        "eval_every": 5_000,
-        "eval_episodes": 200,
-        "threshold": -55.0,
-        "checkpoint_every": 10_000,
-        "agent_config": {"gamma": 0.977},
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {
-                "threshold": 1e-2,
-                "rollout_length": 3,
-                "start_model_after": 6_000,
-                "start_physics_after": 12_000,
-                "model_steps": 10,
-                "finetune_return": -55.0,
-                # the same reward rule for a model with untrained intermediate states (mbrl) as for one with
-                # trained ones (pimbrl), so that the two differ only in the physics
-                "reward_quadrature": "endpoints",
-                # the model study (docs/results.md): data-only, out of sample, 2.3e-5 against 2.7e-3 for the
-                # ConvLSTM at 500 labels; the same model for both methods
-                "model": "equivariant",
-            },
-        },
-    },
 }
+
+
+def preset_of(env: str) -> dict[str, Any]:
+    """The training preset of ``env``: its system's (:attr:`pimbrl.systems.System.preset`), else ``{}``.
+
+    The model-free part applies to every method; its ``model_based`` section on top for mbrl and pimbrl.
+    A system declares it once (the built-in ones: the paper's TD3 table and Table 2, with the changes
+    listed in docs/methods.md). All methods of one environment share budget and warm-up.
+    """
+    from ..systems import get_system
+
+    system = get_system(env)
+    if system is not None:
+        return copy.deepcopy(dict(system.preset))
+    return copy.deepcopy(EXTERNAL_PRESETS.get(env, {}))
 
 
 #: agent fields that only some agents read (checked against agents/td3.py and agents/sac.py)
@@ -385,13 +336,11 @@ def _task_class(env: str) -> Any:
 def is_pde_env(env: str) -> bool:
     """Whether ``env`` is a pimbrl environment whose physics is a PDE.
 
-    That is a :class:`~pimbrl.physics.pde.SemilinearPDE` (Burgers, Kuramoto-Sivashinsky); ``False`` for
-    the ODE systems and for any other Gymnasium id.
+    That is a system whose state is a field on a periodic grid (:attr:`pimbrl.physics.Physics.is_field`:
+    Burgers, Kuramoto-Sivashinsky, a declared PDE); ``False`` for the ODE systems and any other Gymnasium id.
     """
-    from ..physics.pde import SemilinearPDE
-
     task_class = _task_class(env)
-    return task_class is not None and isinstance(task_class().physics, SemilinearPDE)  # built without simulating
+    return task_class is not None and bool(task_class().physics.is_field)  # built without simulating
 
 
 def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | None:
@@ -409,7 +358,7 @@ def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | N
             return f"{flag} applies to pimbrl (it sets the physics loss, which mbrl does not have), not {method}"
         if name in PDE_ONLY and not is_pde_env(env):
             return (
-                f"{flag} applies to the PDE environments (Burgers, Kuramoto-Sivashinsky), not {env}: "
+                f"{flag} applies to the PDE systems (Burgers, Kuramoto-Sivashinsky, a declared PDE), not {env}: "
                 "an ODE system's model is an MLP that predicts one state per solver step"
             )
     elif section == "agent":
@@ -520,7 +469,7 @@ def return_scale_warnings(cfg: TrainConfig) -> list[str]:
     preset's cannot be told apart, and is warned about too); nothing when the keyword arguments only
     repeat the registered defaults.
     """
-    preset = PRESETS.get(cfg.env, {})
+    preset = preset_of(cfg.env)
     kept = []  # (name, value, what it does, how to fix it)
     if preset.get("threshold") is not None and cfg.threshold == preset["threshold"]:
         role = "counts a run as solved (steps to threshold)"
@@ -613,7 +562,7 @@ def resolve_config(
             reason = inapplicable_reason(env, method, agent, path)
             if reason is not None:
                 raise ConfigError(reason)
-    preset = dict(PRESETS.get(env, {}))
+    preset = preset_of(env)
     model_based = dict(preset.pop("model_based", {}))
     if method in MODEL_BASED:
         preset.update({k: v for k, v in model_based.items() if k not in ("agent_config", "dyna")})
@@ -628,10 +577,41 @@ def resolve_config(
         cfg = from_dict(TrainConfig, fields)
     except TypeError as exc:
         raise ConfigError(str(exc)) from None
-    cfg = dataclasses.replace(cfg, agent_config=agent_cfg, dyna=dyna_cfg)
+    cfg = record_ode_model(dataclasses.replace(cfg, agent_config=agent_cfg, dyna=dyna_cfg))
     validate(cfg)
     _check_runnable(cfg)
     return cfg
+
+
+def record_ode_model(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with the model fields of an ODE system's run set to what trains, so that config.json says so.
+
+    A model-based run on a system whose state is not a field trains an MLP that emits one state per solver
+    step (:func:`pimbrl.models.make_model`) checked by the solver's own step: ``dyna.model`` becomes
+    ``mlp`` (``physics`` and ``hybrid`` stay), ``dyna.residual`` ``solver`` and ``dyna.n_intermediate`` the
+    solver steps per control step. Other runs are returned unchanged.
+    """
+    if cfg.method not in MODEL_BASED or is_pde_env(cfg.env):
+        return cfg
+    task_class = _task_class(cfg.env)
+    if task_class is None:
+        return cfg
+    try:
+        substeps = int(task_class(**cfg.env_kwargs).physics.substeps)
+    except (TypeError, ValueError):  # bad keyword arguments: reported with their reason by _check_runnable
+        return cfg
+    model = "mlp" if cfg.dyna.model == "convlstm" else cfg.dyna.model
+    return dataclasses.replace(cfg, dyna=dataclasses.replace(cfg.dyna, model=model, residual="solver", n_intermediate=substeps))
+
+
+def preset_note(env: str) -> str | None:
+    """A line for a run on an environment without a preset (generic defaults apply), ``None`` where it has one."""
+    if preset_of(env):
+        return None
+    return (
+        f"{env} has no preset: the generic defaults of every setting apply (see `pimbrl train {env} --print-config`); "
+        "a system declares one with System.preset (docs/systems.md)"
+    )
 
 
 def _check_runnable(cfg: TrainConfig) -> None:
@@ -669,6 +649,11 @@ def check_lr_decay(cfg: TrainConfig) -> None:
 def check_model_kind(cfg: TrainConfig) -> None:
     """A clear :class:`ConfigError` for a model kind the system cannot have, or a setting it ignores."""
     d = cfg.dyna
+    if d.model == "mlp" and is_pde_env(cfg.env):
+        raise ConfigError(
+            f"--dyna.model mlp is the ODE systems' network, not for the PDE {cfg.env}: use convlstm (the paper's), "
+            "equivariant, physics or hybrid"
+        )
     if d.model == "equivariant" and not is_pde_env(cfg.env):
         raise ConfigError(
             f"--dyna.model equivariant is a network on a PDE's grid, not for {cfg.env}: an ODE system's network "
@@ -738,7 +723,7 @@ def check_coefficients(cfg: TrainConfig) -> None:
                 f"{field}: {cfg.env} has no coefficient {bad[0]!r}{did_you_mean(bad[0], names)}; "
                 f"its coefficients are: {', '.join(names) or 'none'}"
             )
-    if learned and d.residual != "etd":
+    if learned and is_pde_env(cfg.env) and d.residual != "etd":
         raise ConfigError("dyna.learn_coefficients needs the etd residual (--dyna.residual etd), not the solver's")
     leaked = [name for name in learned if name in cfg.env_kwargs and name not in prior]
     if leaked:

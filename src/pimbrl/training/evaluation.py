@@ -11,7 +11,7 @@ which the decisions made during training read (the switch to model-free fine-tun
 nothing.
 
 A pimbrl task may define further protocols (``protocol=``): KS has ``"authors"``, the 5 fixed training
-states the paper's mean return is reported on (:meth:`pimbrl.envs.ks.KSTask.protocol_initial_states`).
+states the paper's mean return is reported on (:meth:`pimbrl.systems.ks.KSTask.protocol_initial_states`).
 
 The same states are used at every evaluation of a run and by every run with the same settings, so
 learning curves of different methods are comparable point by point.

@@ -38,6 +38,7 @@ from ..envs import Task
 from ..models import TransitionModel
 from ..physics import Physics
 from ..spaces import ActionAdapter
+from ..systems import system_origin
 from .collector import Collector
 from .config import TrainConfig, config_from_dict
 from .dyna import PHASES, DynaModel, agent_batch
@@ -411,7 +412,8 @@ def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, comman
             raise FileExistsError(_exists_message(path))
         run_dir.check_entries(writing=True)  # a folder holding planted links or FIFOs is refused
         run_dir.remove_stale_temporaries()
-        run_dir.write_config({"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command})
+        payload = {"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command}
+        run_dir.write_config({**payload, "system": {"id": cfg.env, "origin": system_origin(cfg.env)}})
     except BaseException:
         run_dir.close()
         raise
@@ -428,7 +430,9 @@ def read_run_config(run_dir: RunDirectory) -> TrainConfig:
     Errors are :class:`~pimbrl.config.ConfigError` naming the file, e.g.
     ``DIR/config.json: agent.gamma must be in (0.0, 1.0], got 7.5``.
     """
-    config = run_dir.read_config().get("config")
+    payload = run_dir.read_config()
+    run_dir.require_system(payload)
+    config = payload.get("config")
     if config is None:
         raise ConfigError(f"{run_dir.config_path}: has no 'config' object; this is not a run written by pimbrl")
     try:

@@ -21,15 +21,19 @@ from rich.progress import (
 )
 from rich.table import Column
 
+from ..systems import get_system
+
 __all__ = ["TrainingProgress", "short_label"]
 
-#: short names of long environment ids in the bar's label
-_SHORT = {"KuramotoSivashinsky": "KS"}
+
+def _short(env_id: str) -> str:
+    system = get_system(env_id)
+    return system.name if system is not None else env_id
 
 
 def short_label(label: str) -> str:
-    """``label`` with each ``pimbrl/<Name>-v<k>`` shortened to ``<Name>`` (``KS`` for Kuramoto-Sivashinsky)."""
-    return re.sub(r"pimbrl/([A-Za-z]+)-v\d+", lambda m: _SHORT.get(m.group(1), m.group(1)), label)
+    """``label`` with each system's id shortened to its label (``<Name>``; ``KS`` for Kuramoto-Sivashinsky)."""
+    return re.sub(r"[\w.-]+/[\w.-]+-v\d+", lambda m: _short(m.group(0)), label)
 
 
 def _text(template: str, width: int) -> TextColumn:

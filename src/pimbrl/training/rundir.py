@@ -54,7 +54,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from ..config import check_env_id
+from ..config import ConfigError, check_env_id
 from ..fileio import (
     MAX_CHECKPOINT_BYTES,
     MAX_CSV_BYTES,
@@ -602,6 +602,28 @@ class RunDirectory:
                 )
         return payload
 
+    def require_system(self, payload: dict[str, Any] | None = None) -> None:
+        """A one-line :class:`~pimbrl.config.ConfigError` where the run's system is not registered in this process.
+
+        The message names what declared it when the run was created (``system.origin`` in ``config.json``): the
+        ``--import`` to pass, or the package whose entry point declares it. Nothing named in the file is
+        imported.
+        """
+        import gymnasium as gym
+
+        payload = self.read_config() if payload is None else payload
+        env = (payload.get("config") or {}).get("env")
+        if not isinstance(env, str) or env in gym.registry:
+            return
+        origin = (payload.get("system") or {}).get("origin", "")
+        if origin.startswith("--import "):
+            fix = f"pass `{origin}` (as when the run was created; pimbrl imports nothing named in a run directory)"
+        elif origin.startswith("entry point "):
+            fix = f"install the package whose {origin} (group pimbrl.systems) declares it"
+        else:
+            fix = "install or --import the module that registers it (pimbrl imports nothing named in a run directory)"
+        raise ConfigError(f"{self.path}: the run's system {env} is not registered here; {fix}")
+
     def recorded_config(self, payload: dict[str, Any] | None = None) -> dict[str, Any]:
         """The ``config`` object of ``config.json``, with its ``env`` checked to be a registered-id string.
 
@@ -771,6 +793,7 @@ _TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("versions", _string_map, "an object of strings (package versions)"),
     ("summary", _summary, "an object (with a finite wall_s, if any), or null"),
     ("command", lambda v: isinstance(v, str), "a string"),
+    ("system", lambda v: isinstance(v, dict) and all(isinstance(x, str) for x in v.values()), "an object of strings"),
 )
 
 
