@@ -90,7 +90,7 @@ def test_imagined_episodes_of_the_physics_model_are_the_real_episodes(tmp_path) 
     assert imagined.blown_up == 0 and len(imagined.returns) == 5
     np.testing.assert_allclose(imagined.returns, returns, rtol=1e-3)
     # the start states are training initial states, fixed by the evaluation seed
-    again = PolicySelector(run.model.model_env, 5, cfg.eval_seed)
+    again = PolicySelector(run.model.model_env, 5)
     np.testing.assert_array_equal(again.states, selector.states)
 
 
@@ -105,7 +105,7 @@ def test_a_blown_up_imagined_episode_ends_with_the_divergence_penalty(tmp_path) 
     cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 4})
     run = create_run(cfg, tmp_path / "run", progress=False)
     env = ModelEnv(_Exploding(), run.task, run.adapter, physics=run.physics)  # type: ignore[arg-type]
-    selector = PolicySelector(env, 4, 0)
+    selector = PolicySelector(env, 4)
     result = selector.evaluate(run.agent)
     assert result.blown_up == 4
     np.testing.assert_array_equal(result.returns, np.full(4, run.task.divergence_penalty))

@@ -23,6 +23,10 @@ from pimbrl.training import RunDirectory
 
 from .test_training import TINY
 
+EXAMPLES = {
+    "duffing": str(Path(__file__).resolve().parents[1] / "examples" / "duffing.py"),
+    "allen-cahn": str(Path(__file__).resolve().parents[1] / "examples" / "allen_cahn.py"),
+}
 KS_POOL = json.dumps({"pool_config": {"n_train": 24, "n_test": 8, "n_validation": 4, "batch": 16, "seed": 123}})
 
 #: per system: a model-based run whose switch fires part-way (threshold between the validation returns of
@@ -51,6 +55,19 @@ CASES = {
         ],
         "-850",
         (("2", "5"), ("8", "6")),
+    ),
+    # systems of a user's own (issue 28): the same holds for every declared system
+    "duffing": (
+        ["--import", EXAMPLES["duffing"], "--method", "mbrl", "--steps", "600", "--warmup-steps", "100", "--update-after", "100",
+         "--eval-every", "100", "--dyna.start-model-after", "100"],
+        "-40",
+        (("2", "5"), ("6", "6")),
+    ),
+    "allen-cahn": (
+        ["--import", EXAMPLES["allen-cahn"], "--method", "mbrl", "--steps", "600", "--warmup-steps", "100",
+         "--update-after", "100", "--eval-every", "100", "--dyna.start-model-after", "100"],
+        "-56",
+        (("2", "5"), ("6", "6")),
     ),
 }  # fmt: skip
 
@@ -104,10 +121,23 @@ def test_a_run_trains_the_same_whatever_its_test_set(env: str, tmp_path) -> None
 
 
 @pytest.mark.parametrize(
-    "env", ["pimbrl/Burgers-v0", "pimbrl/Pendulum-v0", "pimbrl/CartPole-v0", "pimbrl/KuramotoSivashinsky-v0"]
+    "env",
+    [
+        "pimbrl/Burgers-v0",
+        "pimbrl/Pendulum-v0",
+        "pimbrl/CartPole-v0",
+        "pimbrl/KuramotoSivashinsky-v0",
+        "example/Duffing-v0",
+        "example/AllenCahn-v0",
+    ],
 )
 def test_validation_draws_are_fixed_and_disjoint_from_the_test_draws(env: str) -> None:
+    from pimbrl.systems import get_system, import_systems
+
     from .conftest import SMALL_POOL
+
+    if get_system(env) is None:
+        import_systems(list(EXAMPLES.values()))
 
     kwargs = {"pool_config": {**SMALL_POOL.__dict__, "n_validation": 4}} if "Kuramoto" in env else {}
     task = gym.make(env, **kwargs).unwrapped.task

@@ -6,7 +6,9 @@ The public API of a system of your own (docs/systems.md):
   draws; :class:`Coefficient` declares a named coefficient with its physical bounds;
 * :func:`declare`: build the environments and register the system under a Gymnasium id and aliases;
 * :class:`System` and :func:`register`: the declaration itself, for a system whose environment you wrote
-  yourself (or someone else's simulator: :mod:`pimbrl.systems.external`);
+  yourself;
+* :func:`declare_external`: someone else's simulator (a Gymnasium env whose state can be read and set),
+  with a declared system as its physics prior (:mod:`pimbrl.systems.external`);
 * :func:`import_systems` (``--import``) and :func:`load_entry_points` (group ``pimbrl.systems``).
 
 The built-in systems, one module each: :mod:`~pimbrl.systems.cartpole`, :mod:`~pimbrl.systems.pendulum`,
@@ -51,6 +53,7 @@ _LAZY = {
         ),
         "declared",
     ),
+    **dict.fromkeys(("ExternalTask", "declare_external"), "external"),
     **dict.fromkeys(("CartPole", "CartPoleEnv", "CartPoleTask", "CartPoleVectorEnv"), "cartpole"),
     **dict.fromkeys(("Pendulum", "PendulumEnv", "PendulumTask", "PendulumVectorEnv", "wrap_angle"), "pendulum"),
     **dict.fromkeys(("Burgers", "BurgersEnv", "BurgersTask", "BurgersVectorEnv"), "burgers"),

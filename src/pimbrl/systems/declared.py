@@ -320,8 +320,8 @@ class DeclaredTask(Task):
         self.physics = self.physics_class(**coefficients)
         self.max_episode_steps = int(self.physics.episode_steps)
         self.divergence_penalty = check_finite_number(divergence_penalty, "divergence_penalty")
-        probe = self.physics.initial_states(np.random.default_rng(0), 1)
-        obs = np.asarray(self.physics.observe(np.asarray(probe, dtype=np.float64), np.zeros(1, dtype=np.int64)))
+        probe = self.sample_initial_states(np.random.default_rng(0), 1)
+        obs = np.asarray(self.physics.observe(probe, np.zeros(1, dtype=np.int64)))
         bound = np.float32(self.physics.divergence_bound + 1.0) if math.isfinite(self.physics.divergence_bound) else np.inf
         self.observation_space = spaces.Box(-bound, bound, shape=obs.shape[1:], dtype=np.float32)
         self.action_space = spaces.Box(

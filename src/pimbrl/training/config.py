@@ -123,7 +123,7 @@ class DynaConfig:
     select_episodes: int = param(
         0,
         "policy selection in the model: at every evaluation, run the deterministic policy for this many whole "
-        "episodes in the model from training initial states and keep the policy with the best imagined return "
+        "episodes in the model from validation initial states and keep the policy with the best imagined return "
         "(selection.csv; `pimbrl eval --policy selected`; 0: off)",
         [non_negative(), at_most(10_000)],
     )

@@ -135,7 +135,7 @@ class DynaModel:
         #: the mean return on the validation draws at the last evaluation (None before the first)
         self.last_validation: float | None = None
         #: model-based policy selection (``dyna.select_episodes``), None when off
-        self.selector = PolicySelector(self.model_env, d.select_episodes, cfg.eval_seed) if d.select_episodes else None
+        self.selector = PolicySelector(self.model_env, d.select_episodes) if d.select_episodes else None
 
     # ------------------------------------------------------------------ real transitions
     def holdout_flag(self) -> float:

@@ -4,14 +4,14 @@ A run's latest policy is not its best one: between two evaluations the mean test
 moves by several units while the trend rises slowly. The held-out test states may not be used to pick a
 policy (the pick would be scored on the states it was picked on). A model-based run has another judge
 to hand: its model. At every evaluation :class:`PolicySelector` runs the deterministic policy for whole
-episodes in the model, from a fixed sample of the environment's *training* initial states, and keeps the
+episodes in the model, from the task's fixed *validation* initial states, and keeps the
 policy whose mean imagined return is the highest so far. What is reported for the selected policy is the
 test return it got at that evaluation, on states the selection never saw.
 
 How good the judge is depends on the model: with the physics in the model (``dyna.model physics``) an
 imagined episode is the simulator's episode to round-off; a learned model ranks policies only as well as
 it predicts whole episodes. Selection draws nothing from the run's random streams (its start states are
-drawn once from their own fixed generator; a ``Discrete(2)`` action maps to its more probable value, as in
+the validation draws, the same whatever the evaluation seed; a ``Discrete(2)`` action maps to its more probable value, as in
 evaluation) and changes no weight, so a run with selection trains exactly as the same run without it.
 
 An imagined episode ends like a real one: at the time limit or at a termination. A prediction that blows
@@ -52,16 +52,18 @@ class PolicySelector:
     Args:
         env: the run's imagined environment (shared: the current model judges, with the physics the run's
             imagination uses, learned coefficients included).
-        episodes: imagined episodes per evaluation, from that many training initial states.
-        seed: seeds the fixed draw of the start states.
+        episodes: imagined episodes per evaluation, from that many validation initial states.
+    The start states are the task's validation draws (:meth:`~pimbrl.envs.Task.validation_initial_states`):
+    fixed, disjoint from the test states, and the same whatever the run's evaluation seed, so that the test
+    set decides nothing.
     """
 
-    def __init__(self, env: ModelEnv, episodes: int, seed: int) -> None:
+    def __init__(self, env: ModelEnv, episodes: int) -> None:
         if episodes <= 0:
             raise ValueError(f"policy selection needs at least one imagined episode, got {episodes}")
         self.env = env
         self.task = env.task
-        self.states = self.task.sample_initial_states(np.random.default_rng([seed, 1]), episodes)
+        self.states = self.task.validation_initial_states(episodes)
         self.best_return: float | None = None
         self.best_step: int | None = None
         self.best_test_return: float | None = None

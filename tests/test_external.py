@@ -1,0 +1,157 @@
+"""Someone else's simulator (issue 28): an external Gymnasium env with a declared system as its physics prior.
+
+The external simulator here is written in this file the way another library would write it (its own
+integrator, its own seeding; the adapter's contract only: ``reset(seed=)``, ``reset(options={"state": u})``
+and ``info["state"]``). The prior believes a wrong damping; PiMBRL learns it from the simulator's data.
+controlgym's PDEs (benchmarks/controlgym_systems.py) are checked where controlgym is installed.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from pimbrl.cli import main
+from pimbrl.systems import Coefficient, ODESystem, SystemSpecError, declare_external, xp_of
+
+from .test_training import TINY
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class OtherLibraryOscillator(gym.Env):
+    """A damped, forced oscillator ``x'' = -c x' - x + a`` by 'another library': 10 explicit Euler steps of 0.01."""
+
+    def __init__(self, damping: float = 0.4) -> None:
+        self.damping = damping
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float64)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float64)
+        self.u = np.zeros(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        if options and options.get("state") is not None:
+            self.u = np.array(options["state"], dtype=np.float64)
+        else:
+            self.u = self.np_random.uniform(-1.0, 1.0, 2)
+        return self.u.copy(), {"state": self.u.copy()}
+
+    def step(self, action):
+        a = float(np.asarray(action).reshape(-1)[0])
+        reward = -float(self.u @ self.u) - 0.1 * a * a  # on the state before the step
+        for _ in range(10):
+            x, v = self.u
+            self.u = self.u + 0.01 * np.array([v, -self.damping * v - x + a])
+        return self.u.copy(), reward, False, False, {"state": self.u.copy()}
+
+
+class OscillatorPrior(ODESystem):
+    """What the user believes: the same oscillator, damping unknown (prior 0.1), RK4 on the same control step."""
+
+    name = "oscillator"
+    state_dim = 2
+    action_low, action_high = [-1.0], [1.0]
+    dt, substeps, integrator = 0.01, 10, "euler"
+    episode_steps = 40
+    divergence_bound = 50.0
+    coefficients = {"c": Coefficient(0.1, low=0.0, high=5.0)}  # noqa: RUF012
+
+    def rhs(self, u, a):
+        xp = xp_of(u)
+        return xp.stack([u[..., 1], -self.c * u[..., 1] - u[..., 0] + a[..., 0]], -1)
+
+    def reward(self, u, a, u_next, k, path=None):
+        return -(u**2).sum(-1) - 0.1 * a[..., 0] ** 2
+
+    def initial_states(self, rng, n):  # not used: the simulator draws the initial states
+        raise AssertionError("an external system's initial states come from the simulator")
+
+
+@pytest.fixture(scope="module")
+def oscillator() -> str:
+    return declare_external(OscillatorPrior, OtherLibraryOscillator, "test/ExternalOscillator-v0", aliases=("ext-osc",)).id
+
+
+def test_an_external_simulator_is_a_checked_env_driven_by_its_own_dynamics(oscillator: str) -> None:
+    env = gym.make(oscillator)
+    check_env(env.unwrapped, skip_render_check=True)
+    _, info = env.reset(seed=3)
+    u0 = info["state"]
+    _, reward, _, _, info = env.step(np.array([0.5], dtype=np.float32))
+    sim = OtherLibraryOscillator()
+    sim.reset(options={"state": u0})
+    expected, expected_reward, *_ = sim.step([0.5])
+    np.testing.assert_array_equal(info["state"], expected)  # the simulator's transition, not the prior's
+    assert reward == expected_reward
+    task = env.unwrapped.task
+    assert not np.allclose(task.physics.step(u0, np.array([0.5])), expected)  # the prior (c = 0.1) is wrong
+    validation, test = task.validation_initial_states(5), task.test_initial_states(5, seed=0)
+    assert not (validation[:, None, :] == test[None, :, :]).all(-1).any()
+
+
+def test_pimbrl_learns_the_prior_s_wrong_coefficient_from_the_simulator(oscillator: str, tmp_path) -> None:
+    run = tmp_path / "run"
+    flags = ["--steps", "400", "--warmup-steps", "80", "--update-after", "80", "--eval-every", "200", "--eval-episodes", "2"]
+    flags += [
+        "--dyna.start-model-after",
+        "80",
+        "--dyna.start-physics-after",
+        "80",
+        "--dyna.learn-coefficients",
+        "c",
+        "--dyna.coefficient-lr",
+        "0.05",
+    ]
+    assert main(["train", "ext-osc", "--method", "pimbrl", *flags, "--run-dir", str(run), *TINY]) == 0
+    metrics = (run / "metrics.csv").read_text().splitlines()
+    header = metrics[0].split(",")
+    learned = float(metrics[-1].split(",")[header.index("coef/c")])
+    assert abs(learned - 0.4) < 0.02, learned  # from the prior's 0.1 to the simulator's 0.4
+
+
+def test_a_declared_reward_that_is_not_the_simulator_s_is_refused() -> None:
+    class WrongReward(OscillatorPrior):
+        def reward(self, u, a, u_next, k, path=None):
+            return -(u_next**2).sum(-1)  # after the step: not what the simulator pays
+
+    with pytest.raises(SystemSpecError, match="the declared reward differs from the external simulator's"):
+        declare_external(WrongReward, OtherLibraryOscillator, "test/WrongReward-v0")
+
+
+def test_a_simulator_without_the_state_in_info_is_refused() -> None:
+    class Opaque(OtherLibraryOscillator):
+        def reset(self, *, seed=None, options=None):
+            obs, _ = super().reset(seed=seed, options=options)
+            return obs, {}
+
+    with pytest.raises(SystemSpecError, match=r"must return the physical state in info\['state'\]"):
+        declare_external(OscillatorPrior, Opaque, "test/Opaque-v0")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+def test_controlgym_priors_match_the_simulator() -> None:
+    import torch
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems as cg
+
+    for env_id, tolerance in (("controlgym/Burgers-v0", 2e-3), ("controlgym/AllenCahn-v0", 2e-3)):
+        task = gym.make(env_id).unwrapped.task
+        rng = np.random.default_rng(0)
+        u = task.sample_initial_states(rng, 4)
+        a = rng.uniform(-1, 1, size=(4, cg.N_ACTION))
+        out = task.advance(u, a, np.zeros(4, dtype=np.int64))
+        etd = task.physics.etdrk4(10)
+        f = task.physics.forcing(torch.as_tensor(a))
+        v = torch.as_tensor(u)
+        physics = task.physics
+        for _ in range(10):
+            v = etd.step(v, lambda w, physics=physics, f=f: physics.nonlinear(w, f))
+        error = np.abs(v.numpy() - out.state).max() / np.abs(out.state - u).max()
+        assert error < tolerance, (env_id, error)  # the prior's coarse step is the simulator's scheme
