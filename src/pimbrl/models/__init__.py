@@ -5,6 +5,7 @@ from .hybrid import HybridModel, PhysicsModel
 from .model_env import ModelEnv
 from .networks import ConvLSTMModel, EquivariantConvModel, MLPModel, TransitionModel
 from .residual import PhysicsResidual
+from .reward import LearnedReward
 from .trainer import ModelTrainer, TransitionData
 
 __all__ = [
@@ -12,6 +13,7 @@ __all__ = [
     "ConvLSTMModel",
     "EquivariantConvModel",
     "HybridModel",
+    "LearnedReward",
     "MLPModel",
     "ModelEnv",
     "ModelTrainer",

@@ -20,6 +20,7 @@ from ..buffers import Transitions
 from ..envs import PHYSICS_INFO_KEYS, PhysicsEnv
 from ..physics import Physics
 from ..spaces import ActionAdapter
+from ..systems.observed import ObservedEnv
 from .streams import RandomStreams
 
 __all__ = ["Collector", "EpisodeEnd", "StepResult"]
@@ -50,8 +51,9 @@ class Collector:
         env_id, env_kwargs: what ``gymnasium.make`` builds.
         streams: the run's random streams (``env`` seeds the first reset; ``exploration`` draws warm-up
             actions and the stochastic ``Discrete(2)`` mapping).
-        record_physics: also return the physical side of each step (model-based methods; needs a
-            pimbrl environment).
+        record_physics: also return the physical side of each step (model-based methods): a pimbrl
+            environment's, or, for any other env with Box spaces, its observation as the state
+            (:class:`~pimbrl.systems.observed.ObservedEnv`).
     """
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], streams: RandomStreams, record_physics: bool) -> None:
@@ -64,10 +66,10 @@ class Collector:
         self.streams = streams
         base = self.env.unwrapped
         self.physics: Physics | None = base.physics if isinstance(base, PhysicsEnv) else None
-        if record_physics and self.physics is None:
-            raise ValueError(
-                f"a model-based method (mbrl, pimbrl) needs a pimbrl environment with a known Physics; {env_id} is not one"
-            )
+        if record_physics and self.physics is None:  # any other env: its observation is the state (data-only)
+            observed = ObservedEnv(self.env)
+            self.env = observed
+            self.physics = observed.task.physics
         self.record_physics = record_physics
         self.episode = 0
         self.episode_return = 0.0
@@ -77,7 +79,9 @@ class Collector:
 
     @property
     def task(self) -> Any:
-        """The pimbrl task of the environment (``None`` for other Gymnasium environments)."""
+        """The pimbrl task of the environment (an observed env's for a model-based run on another env; else ``None``)."""
+        if isinstance(self.env, ObservedEnv):
+            return self.env.task
         return getattr(self.env.unwrapped, "task", None)
 
     def reset(self, first: bool) -> None:

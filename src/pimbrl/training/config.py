@@ -32,6 +32,7 @@ from ..config import (
     MAX_STEPS,
     MAX_TRANSITIONS,
     MODEL_KINDS,
+    PHYSICS_MODEL_KINDS,
     ConfigError,
     at_most,
     check_env_id,
@@ -594,8 +595,9 @@ def record_ode_model(cfg: TrainConfig) -> TrainConfig:
     if cfg.method not in MODEL_BASED or is_pde_env(cfg.env):
         return cfg
     task_class = _task_class(cfg.env)
-    if task_class is None:
-        return cfg
+    if task_class is None:  # an env known by its data only: an MLP predicting the next observation
+        model = "mlp" if cfg.dyna.model == "convlstm" else cfg.dyna.model
+        return dataclasses.replace(cfg, dyna=dataclasses.replace(cfg.dyna, model=model, n_intermediate=1))
     try:
         substeps = int(task_class(**cfg.env_kwargs).physics.substeps)
     except (TypeError, ValueError):  # bad keyword arguments: reported with their reason by _check_runnable
@@ -623,12 +625,39 @@ def _check_runnable(cfg: TrainConfig) -> None:
     check_lr_decay(cfg)
     if cfg.tensorboard:
         check_tensorboard()
+    if cfg.method == "pimbrl" and _task_class(cfg.env) is None:
+        raise ConfigError(
+            f"pimbrl needs the system's equation, and {cfg.env} declares none: use --method mbrl (data-only: the "
+            "observation as the state, the reward learned), or declare the system (docs/systems.md)"
+        )
+    if cfg.method in MODEL_BASED and _task_class(cfg.env) is None:
+        check_observed(cfg)
     if cfg.method == "pimbrl":
         check_physics_sources(cfg.env, cfg.dyna.physics_sources)
     if cfg.method in MODEL_BASED:
         check_coefficients(cfg)
         check_model_kind(cfg)
         check_rollout_starts(cfg)
+
+
+def check_observed(cfg: TrainConfig) -> None:
+    """A clear :class:`ConfigError` for a data-only run on an env outside pimbrl that cannot be one.
+
+    Such an env is known by its data only (:mod:`pimbrl.systems.observed`): Box spaces, no initial states to
+    draw (no policy selection in the model), its own network (an MLP; no physics model).
+    """
+    import gymnasium as gym
+
+    from ..systems.observed import ObservedTask
+
+    try:
+        ObservedTask(gym.make(cfg.env, **cfg.env_kwargs))
+    except ValueError as exc:
+        raise ConfigError(f"{cfg.env}: {exc}") from None
+    if cfg.dyna.select_episodes:
+        raise ConfigError(f"--dyna.select-episodes needs initial states to draw, and {cfg.env} draws its own at reset")
+    if cfg.dyna.model in PHYSICS_MODEL_KINDS:
+        raise ConfigError(f"--dyna.model {cfg.dyna.model} needs the system's equation, and {cfg.env} declares none")
 
 
 def check_lr_decay(cfg: TrainConfig) -> None:

@@ -39,6 +39,7 @@ from ..config import PHYSICS_MODEL_KINDS, parse_learned, parse_prior
 from ..envs import VALIDATION_SEED, Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
+from ..models.reward import LearnedReward
 from ..models.state_sources import broad_actions, broad_pairs, broad_states, even_shares, parse_sources
 from ..physics import Physics
 from ..spaces import ActionAdapter
@@ -109,6 +110,12 @@ class DynaModel:
                 self.physics, n_intermediate=d.n_intermediate, kind=d.model, scheme=inside, correction_scale=d.correction_scale
             )
         self.sources = parse_sources(d.physics_sources, self.physics) if residual is not None else ()
+        #: the learned reward of a system that declares none (an observed Gymnasium env: pimbrl.systems.observed)
+        self.reward_model: LearnedReward | None = None
+        if getattr(self.physics, "learned_reward", False):
+            seed = streams.integer_seed("model_init") + 1  # its own generator: no stream of the run is drawn from
+            self.reward_model = LearnedReward(self.physics.state_dim, self.physics.action_dim, lr=d.model_lr, seed=seed)
+            self.physics.reward_fn = self.reward_model.predict  # type: ignore[attr-defined]
         self.trainer = ModelTrainer(
             self.model, residual, lr=d.model_lr, weight_physics=d.physics_weight, coefficient_lr=d.coefficient_lr
         )
@@ -194,6 +201,8 @@ class DynaModel:
                     unlabelled,
                     unlabelled_rng=self.streams.physics_states,
                 )
+                if self.reward_model is not None and labelled is not None:
+                    self.metrics["model/reward_mse"] = self._fit_reward(real, train_idx)
                 coefficients = self.trainer.coefficients
                 if coefficients is not None and labelled is not None:
                     self.coefficient_history.append(
@@ -211,6 +220,15 @@ class DynaModel:
         if self.in_use and d.rollouts > 0:
             with timed("imagine"):
                 self.imagine(real, agent, d.rollouts)
+
+    def _fit_reward(self, real: ReplayBuffer, train_idx: torch.Tensor) -> float:
+        """Fit the learned reward on the model's training transitions (as many steps as the model); its last loss."""
+        assert self.reward_model is not None
+        d = self.cfg.dyna
+        u, a = real.extra("state", train_idx), real.extra("physical_action", train_idx)
+        return self.reward_model.fit(
+            u, a, real.extra("next_state", train_idx), real.reward.index_select(0, train_idx), d.model_steps, d.model_batch_size
+        )
 
     def _follow_learned_coefficients(self) -> None:
         """Judge imagined steps with the prior at the learned coefficients' current values (after a fit).
@@ -311,6 +329,8 @@ class DynaModel:
             names.append("model/validation_return")
         if self.trainer.residual is not None:
             names.append("model/physics_loss")
+        if self.reward_model is not None:
+            names.append("model/reward_mse")
         if self.trainer.coefficients is not None:
             names += ["model/coefficient_loss", *(f"coef/{name}" for name in self.trainer.coefficients.names)]
         return names
@@ -320,6 +340,7 @@ class DynaModel:
         return {
             "model/data_loss": self.metrics.get("model/data_loss"),
             "model/physics_loss": self.metrics.get("model/physics_loss"),
+            "model/reward_mse": self.metrics.get("model/reward_mse"),
             "model/val_mse": None if not np.isfinite(self.val_mse) else self.val_mse,
             "model/no_change_mse": None if not np.isfinite(self.baseline_mse) else self.baseline_mse,
             "model/in_use": int(self.in_use),
@@ -361,6 +382,7 @@ class DynaModel:
             "imagined_total": self.imagined_total,
             "coefficient_history": list(self.coefficient_history),
             "selection": None if self.selector is None else self.selector.state_dict(),
+            "reward_model": None if self.reward_model is None else self.reward_model.state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -376,6 +398,8 @@ class DynaModel:
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
         self.coefficient_history = list(state.get("coefficient_history", []))
+        if self.reward_model is not None and state.get("reward_model") is not None:
+            self.reward_model.load_state(state["reward_model"])
         if self.selector is not None and state.get("selection") is not None:
             self.selector.load_state_dict(state["selection"])
         if self.coefficient_history:  # imagined steps at the restored values; the prior until the first fit
