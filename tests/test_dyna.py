@@ -203,9 +203,9 @@ def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
     assert "no run under" in capsys.readouterr().err and not empty.exists()
 
 
-def test_model_based_methods_need_a_physics_env(tmp_path, capsys) -> None:
+def test_pimbrl_needs_an_equation(tmp_path, capsys) -> None:
     assert main(["train", "Pendulum-v1", "--method", "pimbrl", "--run-dir", str(tmp_path / "r"), "--quiet"]) == 2
-    assert "needs a pimbrl environment" in capsys.readouterr().err
+    assert "pimbrl needs the system's equation, and Pendulum-v1 declares none" in capsys.readouterr().err
 
 
 def test_small_pool_is_used(ks_small_pools) -> None:

@@ -180,6 +180,7 @@ def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients
     assert float(last["model/coefficient_loss"]) > 0
 
 
+@pytest.mark.slow
 def test_the_correction_finds_a_term_of_a_form_the_prior_lacks_and_stays_small_where_nothing_is_missing() -> None:
     """KS whose true system has a drift -0.2 u_x that no coefficient of the prior names: the correction's
     first-derivative coefficient converges to -0.2; with the exact prior it stays near zero."""

@@ -47,6 +47,7 @@ def test_mbrl_runs_on_gymnasium_s_own_pendulum_with_a_learned_reward(tmp_path) -
     assert float(np.mean((predicted - np.array(r)) ** 2)) < 0.2 * spread  # explains most of the reward's variance
 
 
+@pytest.mark.slow
 def test_a_data_only_run_resumes_as_if_uninterrupted(tmp_path) -> None:
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert main(["train", "Pendulum-v1", "--method", "mbrl", *FLAGS, "--run-dir", str(whole), *TINY]) == 0

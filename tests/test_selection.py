@@ -15,6 +15,9 @@ from pimbrl.training.selection import PolicySelector
 
 from .test_training import _table
 
+# each test trains several short model-based runs (8-13 s each): the slow tier
+pytestmark = pytest.mark.slow
+
 PENDULUM = {"method": "mbrl", "total_steps": 600, "warmup_steps": 100, "update_after": 100, "eval_every": 100, "eval_episodes": 3}
 SMALL_AGENT = {"hidden": (16, 16), "batch_size": 16}
 DYNA = {"model": "physics", "start_model_after": 100, "rollouts": 4, "rollout_length": 5, "threshold": 1e3, "validation_size": 32}

@@ -189,15 +189,17 @@ def test_the_examples_are_short_and_declare_their_systems() -> None:
 @pytest.mark.parametrize("method", ["mfrl", "mbrl", "pimbrl"])
 def test_the_examples_train_through_the_command_line(example: str, alias: str, method: str, tmp_path) -> None:
     run = tmp_path / "run"
-    flags = ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "2"]
+    flags = ["--steps", "200", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "100", "--eval-episodes", "2"]
     if method != "mfrl":
-        flags += ["--dyna.start-model-after", "100"]
+        flags += ["--dyna.start-model-after", "60"]
     cmd = [sys.executable, "-m", "pimbrl.cli", "train", alias, "--import", example, "--method", method, *flags]
     out = subprocess.run([*cmd, "--run-dir", str(run), *TINY], capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr
     assert "has no preset" not in out.stderr  # both examples declare one
     payload = json.loads((run / "config.json").read_text())
     assert payload["status"] == "finished" and payload["system"]["origin"] == f"--import {example}"
+    if method != "pimbrl":
+        return
     # reopening the run needs the same --import: without it, one line that says which to pass
     eval_cmd = [sys.executable, "-m", "pimbrl.cli", "eval", str(run), "--episodes", "1"]
     bare = subprocess.run(eval_cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)

@@ -261,7 +261,7 @@ def test_none_on_the_command_line_clears_a_preset_value() -> None:
 def test_a_run_that_cannot_start_leaves_no_directory(tmp_path, capsys) -> None:
     run = tmp_path / "r"
     assert main(["train", "Pendulum-v1", "--method", "pimbrl", "--run-dir", str(run), "--quiet"]) == 2
-    assert "needs a pimbrl environment" in capsys.readouterr().err
+    assert "pimbrl needs the system's equation, and Pendulum-v1 declares none" in capsys.readouterr().err
     assert not (run / "config.json").exists()
     assert main(["train", "Pendulum-v1", "--run-dir", str(run), *SMOKE["Pendulum-v1"], *TINY]) == 0
 
