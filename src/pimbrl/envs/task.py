@@ -151,6 +151,10 @@ class Task(ABC):
         Blown-up environments keep their pre-step state, are terminated and get the divergence penalty.
         """
         u_next, reward = self.physics.advance(u, physical_action, k)
+        return self.outcome(u, u_next, reward)
+
+    def outcome(self, u: np.ndarray, u_next: np.ndarray, reward: np.ndarray) -> StepOutcome:
+        """The step's outcome from its simulated next states and rewards: blow-ups and terminations applied."""
         reward = np.asarray(reward, dtype=np.float64) + np.zeros(len(u))
         diverged = self.physics.diverged(u_next) | ~np.isfinite(reward)
         terminated = np.asarray(self.physics.terminated(u_next), dtype=bool) | diverged

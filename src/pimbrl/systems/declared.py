@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 import torch
@@ -125,6 +125,16 @@ class _Declared:
         """The observation of state ``u`` at control step ``k`` (default: the state itself)."""
         return u
 
+    # ------------------------------------------------------------------ the simulator (derived)
+    def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One control step of the reference integrator in float64 for a batch, and its rewards."""
+        u = np.asarray(u, dtype=np.float64)
+        a = np.asarray(a, dtype=np.float64)
+        physics = cast(Physics, self)  # (a mixin of Physics subclasses)
+        with np.errstate(over="ignore", invalid="ignore"):  # a blow-up is the environment's to report
+            u_next = physics.step(u, a)
+            return u_next, physics.reward(u, a, u_next, k)
+
 
 class ODESystem(_Declared, Physics):
     """Base class of a user ODE system ``du/dt = rhs(u, a)``.
@@ -165,14 +175,6 @@ class ODESystem(_Declared, Physics):
         k3 = self.rhs(u + 0.5 * dt * k2, a)
         k4 = self.rhs(u + dt * k3, a)
         return u + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-    def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One control step of the reference integrator in float64 for a batch, and its rewards."""
-        u = np.asarray(u, dtype=np.float64)
-        a = np.asarray(a, dtype=np.float64)
-        with np.errstate(over="ignore", invalid="ignore"):  # a blow-up is the environment's to report
-            u_next = self.step(u, a)
-            return u_next, self.reward(u, a, u_next, k)
 
 
 class FourierOperator:
@@ -294,14 +296,6 @@ class PeriodicPDESystem(_Declared, SemilinearPDE):
     def kernel_spec(self) -> PDEKernelSpec:
         """Not used: a declared PDE runs on the batched NumPy reference integrator."""
         raise NotImplementedError("a declared PDE has no compiled kernel")
-
-    def advance(self, u: np.ndarray, a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One control step of the reference integrator in float64 for a batch, and its rewards."""
-        u = np.asarray(u, dtype=np.float64)
-        a = np.asarray(a, dtype=np.float64)
-        with np.errstate(over="ignore", invalid="ignore"):  # a blow-up is the environment's to report
-            u_next = self.step(u, a)
-            return u_next, self.reward(u, a, u_next, k)
 
 
 class DeclaredTask(Task):

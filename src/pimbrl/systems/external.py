@@ -66,12 +66,7 @@ class ExternalTask(DeclaredTask):
             _, r, _, _, info = self.simulator.step(np.asarray(physical_action[i], dtype=np.float64))
             u_next[i] = np.asarray(info["state"], dtype=np.float64).reshape(self.state_dim)
             reward[i] = float(r)
-        diverged = self.physics.diverged(u_next) | ~np.isfinite(reward)
-        terminated = np.asarray(self.physics.terminated(u_next), dtype=bool) | diverged
-        if diverged.any():
-            u_next = np.where(diverged[:, None], u, u_next)
-            reward = np.where(diverged, self.divergence_penalty, reward)
-        return StepOutcome(u_next, reward, terminated, diverged)
+        return self.outcome(u, u_next, reward)
 
 
 def _check_reward(task: ExternalTask, steps: int = 3) -> None:
