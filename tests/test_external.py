@@ -52,7 +52,7 @@ class OtherLibraryOscillator(gym.Env):
 
 
 class OscillatorPrior(ODESystem):
-    """What the user believes: the same oscillator, damping unknown (prior 0.1), RK4 on the same control step."""
+    """What the user believes: the same oscillator, damping unknown (prior 0.1), the same Euler steps."""
 
     name = "oscillator"
     state_dim = 2
@@ -113,6 +113,18 @@ def test_pimbrl_learns_the_prior_s_wrong_coefficient_from_the_simulator(oscillat
     header = metrics[0].split(",")
     learned = float(metrics[-1].split(",")[header.index("coef/c")])
     assert abs(learned - 0.4) < 0.02, learned  # from the prior's 0.1 to the simulator's 0.4
+
+
+def test_the_simulator_s_own_termination_ends_an_episode() -> None:
+    class Fence(OtherLibraryOscillator):
+        def step(self, action):
+            obs, reward, _, truncated, info = super().step(action)
+            return obs, reward, bool(abs(self.u[0]) > 0.5), truncated, info
+
+    env = gym.make(declare_external(OscillatorPrior, Fence, "test/Fence-v0").id)
+    env.reset(seed=0, options={"initial_state": np.array([0.45, 1.0])})
+    _, _, terminated, truncated, info = env.step(np.array([1.0], dtype=np.float32))
+    assert terminated and not truncated and abs(info["state"][0]) > 0.5
 
 
 def test_a_declared_reward_that_is_not_the_simulator_s_is_refused() -> None:

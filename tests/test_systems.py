@@ -176,7 +176,7 @@ def test_the_examples_are_short_and_declare_their_systems() -> None:
         body = [line for line in code if not line.strip().startswith(('"""', "'''"))]
         assert len(body) <= 80, (path, len(body))
     ids = import_systems([DUFFING, ALLEN_CAHN])
-    assert set(ids) >= {"example/Duffing-v0", "example/AllenCahn-v0"} or get_system("example/Duffing-v0") is not None
+    assert ids == ["example/Duffing-v0", "example/AllenCahn-v0"]  # what the two files registered (again or not)
     for alias, env_id in (("duffing", "example/Duffing-v0"), ("allen-cahn", "example/AllenCahn-v0")):
         assert resolve_env_id(alias) == env_id
         env = gym.make(env_id)
@@ -216,6 +216,8 @@ def test_resume_without_the_import_is_a_one_line_error_naming_it(tmp_path) -> No
         sys.exit(main(["resume", {str(tmp_path / "run")!r}, "--quiet"]))
         """
     )
+    # the module the run names, planted beside it: importing it would leave a marker
+    (tmp_path / "my_system.py").write_text("open('IMPORTED', 'w').close()\n")
     run = tmp_path / "run"
     run.mkdir()
     payload = {
@@ -224,10 +226,15 @@ def test_resume_without_the_import_is_a_one_line_error_naming_it(tmp_path) -> No
         "system": {"id": "example/Nowhere-v0", "origin": "--import my_system.py"},
     }
     (run / "config.json").write_text(json.dumps(payload))
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert out.returncode == 2 and out.stderr.count("\n") == 1
-    assert "example/Nowhere-v0 is not registered here; pass `--import my_system.py`" in out.stderr
-    assert not (tmp_path / "my_system.py").exists()
+    assert "example/Nowhere-v0 is not registered here; pass `--import my_system.py` as its config.json records" in out.stderr
+    assert not (tmp_path / "IMPORTED").exists()  # nothing named in the run directory was imported
+    # an origin that is not of a known one-line form is not repeated
+    payload["system"]["origin"] = "--import x.py\x1b[2J; rm -rf"
+    (run / "config.json").write_text(json.dumps(payload))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert out.returncode == 2 and "rm -rf" not in out.stderr and "\x1b" not in out.stderr
 
 
 @pytest.mark.parametrize(
@@ -238,7 +245,7 @@ def test_resume_without_the_import_is_a_one_line_error_naming_it(tmp_path) -> No
     ],
 )
 def test_a_bad_import_is_a_one_line_error(spec: str, message: str, capsys) -> None:
-    assert main(["simulate", "duffing", "--import", spec]) == 2
+    assert main(["simulate", "pendulum", "--import", spec]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
 
@@ -275,6 +282,65 @@ def test_an_installed_package_registers_its_systems_through_an_entry_point(tmp_p
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.split("\n")[:2] == ["['example/Duffing-v0']", "entry point duffing"]
+
+
+def test_an_import_by_a_relative_path_from_the_working_directory(tmp_path) -> None:
+    cmd = [
+        sys.executable,
+        "-m",
+        "pimbrl.cli",
+        "simulate",
+        "duffing",
+        "--import",
+        "examples/duffing.py",
+        "--out",
+        str(tmp_path / "d.png"),
+    ]
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "example/Duffing-v0" in out.stdout
+
+
+def test_a_missing_dependency_of_an_imported_module_is_named_as_such(tmp_path, monkeypatch, capsys) -> None:
+    (tmp_path / "mysys_ext.py").write_text("import mysys\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "pendulum", "--import", "mysys_ext"]) == 2
+    err = capsys.readouterr().err
+    assert "--import mysys_ext failed: ModuleNotFoundError: No module named 'mysys'" in err
+
+
+def test_an_alias_cannot_shadow_a_gymnasium_id() -> None:
+    with pytest.raises(SystemSpecError, match="the alias 'pendulum-v1' is a registered Gymnasium id"):
+        declare(VanDerPol, "test/Shadow-v0", aliases=("pendulum-v1",))
+    assert resolve_env_id("Pendulum-v1") == "Pendulum-v1"
+
+
+def test_two_declarations_cannot_share_an_id(vanderpol: str, tmp_path) -> None:
+    other = tmp_path / "other_vdp.py"
+    other.write_text(
+        "from tests.test_systems import VanDerPol\nfrom pimbrl.systems import declare\ndeclare(VanDerPol, 'test/VanDerPol-v0')\n"
+    )
+    with pytest.raises(SystemSpecError, match=re.escape("test/VanDerPol-v0 is already declared by module tests.test_systems")):
+        import_systems([str(other)])
+
+
+@pytest.mark.parametrize(
+    ("attrs", "message"),
+    [
+        ({"coefficients": ("k",)}, "coefficients must be a dict of name -> Coefficient"),
+        ({"coefficients": {"dt": Coefficient(0.1)}}, "'dt' cannot name a coefficient"),
+        ({"action_low": [1.0], "action_high": [-1.0]}, "each action needs finite bounds with action_low < action_high"),
+        ({"dt": float("nan")}, "dt must be a finite number > 0, got nan"),
+        ({"action_low": [-1.0, -1.0]}, "action_low and action_high need one bound per action"),
+    ],
+)
+def test_a_declaration_that_cannot_work_is_a_one_line_error(attrs, message) -> None:
+    def build():
+        cls = type("Broken", (VanDerPol,), dict(attrs))
+        return cls()
+
+    with pytest.raises(SystemSpecError, match=re.escape(message)):
+        build()
 
 
 def test_bad_declarations_are_one_line_errors() -> None:

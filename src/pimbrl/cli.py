@@ -424,7 +424,13 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     _check_run_dir(args.run_dir)
     use_ray = False if args.no_ray else (True if args.address else None)
     result = run_sweep(
-        spec, args.run_dir, use_ray=use_ray, address=args.address, num_cpus=args.cpus, log=lambda m: print(m, flush=True)
+        spec,
+        args.run_dir,
+        use_ray=use_ray,
+        address=args.address,
+        num_cpus=args.cpus,
+        log=lambda m: print(m, flush=True),
+        imports=args.imports,
     )
     print(
         f"{len(result['rows'])} trials with results, {result['executed']} run now; "

@@ -38,6 +38,7 @@ into ``DIR/results.csv`` (one row per trial), ``DIR/summary.json`` and ``DIR/cur
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import sys
@@ -86,6 +87,8 @@ class Trial:
     params: tuple[tuple[str, Any], ...]  # the grid values of its setting, as written in the sweep file
     path: str
     config: TrainConfig
+    #: the ``--import`` arguments (systems of the user's own) a worker loads before it runs the trial
+    imports: tuple[str, ...] = ()
 
     @property
     def setting(self) -> str:
@@ -252,9 +255,12 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
 
 def execute_trial(trial: Trial) -> dict[str, Any]:
     """Train (or resume) one trial in this process; never raises (a failure is returned)."""
+    from ..systems import import_systems, load_entry_points
     from ..training import RunDirectory, resume_training, run_training
 
     try:
+        load_entry_points()  # a Ray worker is a fresh process: the user's systems are registered there too
+        import_systems(trial.imports)
         status = RunDirectory(trial.path).status
         if status == "finished":
             return {"path": trial.path, "ok": True, "skipped": True}
@@ -283,10 +289,17 @@ def run_sweep(
     address: str | None = None,
     num_cpus: int | None = None,
     log: Callable[[str], None] = print,
+    imports: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Run the unfinished trials of ``spec`` and aggregate all of them into ``root``."""
+    """Run the unfinished trials of ``spec`` and aggregate all of them into ``root``.
+
+    ``imports``: the ``--import`` arguments every trial's process loads first (files as absolute paths, so
+    that a Ray worker in another directory finds them).
+    """
     root = Path(root)
     trials = plan_trials(spec, root)  # every configuration checked before anything runs
+    absolute = tuple(str(Path(s).resolve()) if s.endswith(".py") or "/" in s else s for s in imports)
+    trials = [dataclasses.replace(t, imports=absolute) for t in trials]
     base = root.resolve()
     for trial in trials:  # DIR/<env>/<method>/<setting>/seed<k>: no link on the way below DIR
         check_below(base, Path(trial.path).relative_to(base), "directory")

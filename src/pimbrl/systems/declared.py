@@ -83,6 +83,30 @@ def _declared(cls: type, attr: str) -> Any:
     return getattr(cls, attr)
 
 
+#: names a coefficient may not take: the settings of a declared system (a coefficient would overwrite them)
+_RESERVED = frozenset(
+    {"n", "length", "dx", "x", "dt", "substeps", "method", "integrator", "name", "state_dim", "action_dim",
+     "action_low", "action_high", "episode_steps", "divergence_bound", "linear", "actuator_shapes", "bounds",
+     "coefficients", "nonlinear_coef", "reflection_symmetric", "shift_symmetric"}
+)  # fmt: skip
+
+
+def _check_settings(system: Any) -> None:
+    """One-line :class:`SystemSpecError` for a declared system's settings that cannot work (each its own message)."""
+    name = system.name
+    if not (math.isfinite(system.dt) and system.dt > 0):
+        raise SystemSpecError(f"{name}: dt must be a finite number > 0, got {system.dt!r}")
+    if system.substeps < 1:
+        raise SystemSpecError(f"{name}: substeps must be >= 1, got {system.substeps!r}")
+    low, high = system.action_low, system.action_high
+    if low.shape != high.shape or low.size == 0:
+        raise SystemSpecError(
+            f"{name}: action_low and action_high need one bound per action, got {low.tolist()} and {high.tolist()}"
+        )
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)):
+        raise SystemSpecError(f"{name}: each action needs finite bounds with action_low < action_high")
+
+
 class _Declared:
     """What both kinds of declared system share: named, bounded coefficients and the task's parts."""
 
@@ -95,12 +119,21 @@ class _Declared:
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         declared = cls.__dict__.get("coefficients")
-        if isinstance(declared, Mapping):
-            for key, c in declared.items():
-                if not isinstance(c, Coefficient):
-                    raise SystemSpecError(f"{cls.__name__}.coefficients[{key!r}] must be a Coefficient(default, low, high)")
-            cls.bounds = dict(declared)
-            cls.coefficients = tuple(declared)
+        if declared is None:
+            return
+        if not isinstance(declared, Mapping):
+            raise SystemSpecError(
+                f"{cls.__name__}.coefficients must be a dict of name -> Coefficient(default, low, high), got {declared!r}"
+            )
+        for key, c in declared.items():
+            if not isinstance(c, Coefficient):
+                raise SystemSpecError(f"{cls.__name__}.coefficients[{key!r}] must be a Coefficient(default, low, high)")
+            if not isinstance(key, str) or not key.isidentifier() or key in _RESERVED or hasattr(Physics, key):
+                raise SystemSpecError(
+                    f"{cls.__name__}: {key!r} cannot name a coefficient (a setting or method of every system has that name)"
+                )
+        cls.bounds = dict(declared)
+        cls.coefficients = tuple(declared)
 
     def _set_coefficients(self, values: Mapping[str, Any]) -> None:
         unknown = [k for k in values if k not in self.bounds]
@@ -162,8 +195,7 @@ class ODESystem(_Declared, Physics):
         self.substeps = int(type(self).substeps)
         if self.integrator not in ("rk4", "euler"):
             raise SystemSpecError(f"{self.name}: integrator must be 'rk4' or 'euler', got {self.integrator!r}")
-        if not (self.dt > 0 and self.substeps >= 1 and self.action_low.shape == self.action_high.shape):
-            raise SystemSpecError(f"{self.name}: need dt > 0, substeps >= 1 and one action_high per action_low")
+        _check_settings(self)
 
     def substep(self, u: Array, a: Array) -> Array:
         """One solver step: classic RK4 (default) or explicit Euler, with the action held."""
@@ -257,6 +289,9 @@ class PeriodicPDESystem(_Declared, SemilinearPDE):
         self.action_dim = len(self.action_low)
         if self.method not in ("rk4", "euler"):
             raise SystemSpecError(f"{self.name}: method must be 'rk4' or 'euler', got {self.method!r}")
+        if self.n < 5 or self.n != _declared(type(self), "n") or not (math.isfinite(self.length) and self.length > 0):
+            raise SystemSpecError(f"{self.name}: need a whole number n >= 5 of grid points and a finite length > 0")
+        _check_settings(self)
         # a FourierOperator offers what the PDE machinery calls on a Stencil here: apply and symbol
         self.linear = self.linear_operator()  # type: ignore[assignment]
         self.actuator_shapes = np.asarray(self.actuators(), dtype=np.float64)

@@ -2,7 +2,10 @@
 
 The simulator is an external Gymnasium env whose physical state can be read and set, through one small
 contract: ``reset(seed=s)`` draws an initial state, ``reset(options={"state": u})`` starts from ``u``, and
-the ``info`` of ``reset`` and ``step`` carries the physical state in ``info["state"]``. The equation is a
+the ``info`` of ``reset`` and ``step`` carries the physical state in ``info["state"]``. A step's
+``terminated`` ends the episode (its ``truncated`` is ignored: the system's episode length is the time
+limit). Each control step starts from a reset to the state, so the simulator's dynamics and reward must
+not depend on its own step counter. The equation is a
 declared system (:class:`~pimbrl.systems.ODESystem` or :class:`~pimbrl.systems.PeriodicPDESystem`): what
 the user believes the simulator integrates. It serves as the physics prior of PiMBRL (the residual, the
 scheme as the model, the hybrid model) and gives the imagined rewards; the real transitions and rewards
@@ -61,12 +64,17 @@ class ExternalTask(DeclaredTask):
         u = np.asarray(u, dtype=np.float64)
         u_next = np.empty_like(u)
         reward = np.empty(len(u))
+        ended = np.zeros(len(u), dtype=bool)
         for i in range(len(u)):
             self._reset(options={"state": u[i].copy()})
-            _, r, _, _, info = self.simulator.step(np.asarray(physical_action[i], dtype=np.float64))
+            _, r, terminated, _, info = self.simulator.step(np.asarray(physical_action[i], dtype=np.float64))
+            if not isinstance(info, dict) or "state" not in info:
+                raise SystemSpecError("the external env's step() must return the physical state in info['state']")
             u_next[i] = np.asarray(info["state"], dtype=np.float64).reshape(self.state_dim)
             reward[i] = float(r)
-        return self.outcome(u, u_next, reward)
+            ended[i] = bool(terminated)  # the simulator's own end of an episode (its time limit is truncation)
+        out = self.outcome(u, u_next, reward)
+        return StepOutcome(out.state, out.reward, out.terminated | ended, out.diverged)
 
 
 def _check_reward(task: ExternalTask, steps: int = 3) -> None:

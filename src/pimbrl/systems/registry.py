@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import contextlib
 import difflib
+import hashlib
 import importlib
 import importlib.metadata
 import importlib.util
 import re
 import sys
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -122,6 +124,8 @@ _SYSTEMS: dict[str, System] = {}
 _ALIASES: dict[str, str] = {alias: env_id for env_id, (_, aliases, _) in BUILTIN.items() for alias in aliases}
 #: the origin given to systems registered while :func:`import_systems` runs a user's module
 _ORIGIN: list[str] = []
+#: every registration, in order (what an import registered is read from it)
+_REGISTERED: list[str] = []
 
 
 def register_builtin() -> None:
@@ -158,11 +162,16 @@ def register(system: System) -> System:
         system = System(**{**system.__dict__, "origin": origin})
     if system.id in gym.registry and system.id not in _SYSTEMS and system.id not in BUILTIN:
         raise SystemSpecError(f"{system.id} is already registered with Gymnasium by another library; choose another id")
+    registered = {i.lower() for i in gym.registry}
     for alias in system.aliases:
         holder = _ALIASES.get(alias)
         if holder is not None and holder != system.id:
             raise SystemSpecError(f"{system.id}: the alias {alias!r} already names {holder}; choose another alias")
+        if alias in registered and alias != system.id.lower():
+            raise SystemSpecError(f"{system.id}: the alias {alias!r} is a registered Gymnasium id; choose another alias")
     old = _SYSTEMS.get(system.id)
+    if old is not None and old.origin != system.origin:
+        raise SystemSpecError(f"{system.id} is already declared by {old.origin}; two declarations cannot share an id")
     if old is not None:
         for alias in old.aliases:
             _ALIASES.pop(alias, None)
@@ -177,6 +186,7 @@ def register(system: System) -> System:
     _SYSTEMS[system.id] = system
     for alias in system.aliases:
         _ALIASES[alias] = system.id
+    _REGISTERED.append(system.id)
     return system
 
 
@@ -214,7 +224,7 @@ def resolve_env_id(name: str) -> str:
     Raises:
         ValueError: a one-line message with the known names and the closest match.
     """
-    env_id = _ALIASES.get(name.lower(), name)
+    env_id = name if name in gym.registry else _ALIASES.get(name.lower(), name)
     if env_id not in gym.registry:
         known = ", ".join(sorted(_ALIASES))
         close = difflib.get_close_matches(name, [*_ALIASES, *gym.registry], n=1, cutoff=0.6)
@@ -236,7 +246,9 @@ def _origin(text: str) -> Iterator[None]:
 
 
 def _module_from_file(path: Path) -> None:
-    name = "pimbrl_user_" + re.sub(r"\W", "_", path.stem)
+    # one module per file: two files of the same name in different folders are two modules
+    digest = hashlib.sha256(str(path).encode()).hexdigest()[:12]
+    name = f"pimbrl_user_{re.sub(r'[^0-9A-Za-z_]', '_', path.stem)}_{digest}"
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
         raise SystemSpecError(f"--import {path}: not a Python file Python can load")
@@ -258,7 +270,7 @@ def import_systems(specs: Sequence[str]) -> list[str]:
     Raises:
         SystemSpecError: a one-line message for a missing file or module, or an error raised while importing.
     """
-    before = set(_SYSTEMS)
+    start = len(_REGISTERED)
     for spec in specs:
         if not isinstance(spec, str) or not spec.strip():
             raise SystemSpecError(f"--import needs a module name or a path to a .py file, got {spec!r}")
@@ -280,10 +292,10 @@ def import_systems(specs: Sequence[str]) -> list[str]:
                     finally:
                         if added:
                             sys.path.remove(cwd)
-        except SystemSpecError:
-            raise
+        except SystemSpecError as exc:
+            raise SystemSpecError(f"--import {spec}: {exc}") from None
         except ModuleNotFoundError as exc:
-            if exc.name and spec.startswith(exc.name):
+            if exc.name and (exc.name == spec or spec.startswith(exc.name + ".")):
                 raise SystemSpecError(
                     f"--import {spec}: no module named {exc.name!r} (run from the folder that holds it, "
                     "or give a path to the .py file)"
@@ -291,30 +303,45 @@ def import_systems(specs: Sequence[str]) -> list[str]:
             raise SystemSpecError(f"--import {spec} failed: {type(exc).__name__}: {exc}") from None
         except Exception as exc:  # the user's module raised: report it in one line
             raise SystemSpecError(f"--import {spec} failed: {type(exc).__name__}: {exc}") from None
-    return [i for i in _SYSTEMS if i not in before]
+    return list(dict.fromkeys(_REGISTERED[start:]))
 
 
 def load_entry_points() -> list[str]:
     """Register the systems of installed packages (entry-point group ``pimbrl.systems``); returns their ids.
 
     Each entry point loads a :class:`System` (registered here) or a function that registers its systems
-    when called. A broken entry point is a :class:`SystemSpecError` naming it.
+    when called. An entry point that fails is skipped with a one-line warning naming it (one broken package
+    does not stop every command); its systems are then unknown. Loaded once per process.
     """
-    before = set(_SYSTEMS)
+    if _ENTRY_POINTS_LOADED:
+        return []
+    _ENTRY_POINTS_LOADED.append(True)
+    start = len(_REGISTERED)
     for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
         try:
-            with _origin(f"entry point {ep.name}"):
-                target = ep.load()
-                if isinstance(target, System):
-                    register(target)
-                elif callable(target):
-                    target()
-                else:
-                    raise SystemSpecError(f"entry point {ep.name} ({ep.value}) is neither a System nor a function")
-        except SystemSpecError:
-            raise
-        except Exception as exc:
-            raise SystemSpecError(
-                f"entry point {ep.name} ({ep.value}) of group {ENTRY_POINT_GROUP} failed: {type(exc).__name__}: {exc}"
-            ) from None
-    return [i for i in _SYSTEMS if i not in before]
+            _load_entry_point(ep)
+        except SystemSpecError as exc:
+            warnings.warn(str(exc), RuntimeWarning, stacklevel=2)
+    return list(dict.fromkeys(_REGISTERED[start:]))
+
+
+_ENTRY_POINTS_LOADED: list[bool] = []
+
+
+def _load_entry_point(ep: importlib.metadata.EntryPoint) -> None:
+    """Load one entry point of the group (a :class:`SystemSpecError` naming it where it fails)."""
+    try:
+        with _origin(f"entry point {ep.name}"):
+            target = ep.load()
+            if isinstance(target, System):
+                register(target)
+            elif callable(target):
+                target()
+            else:
+                raise SystemSpecError(f"entry point {ep.name} ({ep.value}) is neither a System nor a function")
+    except SystemSpecError:
+        raise
+    except Exception as exc:
+        raise SystemSpecError(
+            f"entry point {ep.name} ({ep.value}) of group {ENTRY_POINT_GROUP} failed: {type(exc).__name__}: {exc}"
+        ) from None

@@ -616,8 +616,13 @@ class RunDirectory:
         if not isinstance(env, str) or env in gym.registry:
             return
         origin = (payload.get("system") or {}).get("origin", "")
+        if not _ORIGIN.match(origin):  # text from an untrusted file: printed only in a known, one-line form
+            origin = ""
         if origin.startswith("--import "):
-            fix = f"pass `{origin}` (as when the run was created; pimbrl imports nothing named in a run directory)"
+            fix = (
+                f"pass `{origin}` as its config.json records (check that file first: pimbrl imports nothing named "
+                "in a run directory)"
+            )
         elif origin.startswith("entry point "):
             fix = f"install the package whose {origin} (group pimbrl.systems) declares it"
         else:
@@ -787,6 +792,9 @@ def _summary(value: Any) -> bool:
 
 
 #: the top-level fields of config.json pimbrl reads: (name, check, what it must be)
+#: the forms of ``system.origin`` a message may repeat: one line of printable characters, of a known kind
+_ORIGIN = re.compile(r"(--import [^\x00-\x1f\x7f`]{1,300}|entry point [\w.-]{1,200}|module [\w.]{1,200}|pimbrl|gymnasium)\Z")
+
 _TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("status", lambda v: v in ("running", "finished"), '"running" or "finished"'),
     ("config", lambda v: isinstance(v, dict), "an object"),
