@@ -387,3 +387,34 @@ def test_a_system_without_a_preset_is_told_so_at_start(vanderpol: str, tmp_path,
     assert "test/VanDerPol-v0 has no preset: the generic defaults of every setting apply" in err
     assert main(["train", "pendulum", "--print-config"]) == 0
     assert "has no preset" not in capsys.readouterr().err
+
+
+def test_a_sweep_trial_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> None:
+    """A Ray worker is a fresh process: the trial carries its --import and loads it there."""
+    plan = textwrap.dedent(
+        f"""
+        import pickle, sys
+        from pimbrl.systems import import_systems
+        from pimbrl.experiments.sweep import Trial
+        from pimbrl.training import resolve_config
+        import_systems([{DUFFING!r}])
+        fields = {{"method": "mfrl", "total_steps": 60, "warmup_steps": 20, "update_after": 20, "eval_every": 60,
+                  "eval_episodes": 1}}
+        cfg = resolve_config("example/Duffing-v0", fields)
+        trial = Trial("example/Duffing-v0", "mfrl", 0, (), {str(tmp_path / "trial")!r}, cfg, ({DUFFING!r},))
+        sys.stdout.buffer.write(pickle.dumps(trial))
+        """
+    )
+    pickled = subprocess.run([sys.executable, "-c", plan], capture_output=True, timeout=120, check=True).stdout
+    (tmp_path / "trial.pkl").write_bytes(pickled)
+    run = textwrap.dedent(
+        f"""
+        import pickle
+        from pimbrl.experiments.sweep import execute_trial
+        out = execute_trial(pickle.loads(open({str(tmp_path / "trial.pkl")!r}, "rb").read()))
+        print(out["ok"], out.get("error", ""))
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", run], capture_output=True, text=True, timeout=300)
+    assert out.stdout.startswith("True"), out.stdout + out.stderr
+    assert json.loads((tmp_path / "trial" / "config.json").read_text())["status"] == "finished"
