@@ -67,6 +67,7 @@ def test_critic_layer_norm_makes_q_invariant_to_the_scale_of_a_hidden_layer() ->
         assert (moved < 1e-4) if layer_norm else (moved > 1e-2), (layer_norm, moved)
 
 
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_td3_drives_discrete_cartpole_style_actions(tmp_path) -> None:
     summary, _ = _train_toy(tmp_path, "td3", env="toy/ReachDiscrete-v0", steps=2000)
     assert summary.best_return_mean is not None and summary.best_return_mean > -2.0

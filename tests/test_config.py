@@ -250,6 +250,7 @@ def test_compare_cli_rejects_an_extra_flag_that_fits_no_method(tmp_path, capsys)
     assert not (tmp_path / "c").exists()
 
 
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_compare_launches_children_with_a_config_file(tmp_path) -> None:
     root = tmp_path / "cmp"
     lines: list[str] = []

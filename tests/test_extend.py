@@ -19,6 +19,7 @@ def _returns(path) -> list[tuple[str, str]]:
     return [(r["step"], r["return_mean"]) for r in RunDirectory(path).evaluations.read()]
 
 
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_an_extended_run_continues_to_the_larger_budget(tmp_path, capsys) -> None:
     args = [*_for_method(DYNA_SMOKE["pendulum"], "mbrl"), *TINY, *SMALL_MODEL, "--method", "mbrl"]
     args = [a if a != "300" else "150" for a in args]  # --steps 150 (the eval interval stays 150)

@@ -94,6 +94,7 @@ def _fit(residual: PhysicsResidual, u, a, u1, steps: int) -> None:
     ("name", "true", "prior", "bounds"),
     [("convection", 1.3, 1.0, None), ("convection", 0.7, 1.0, None), ("damping", 0.1, 0.0, (0.0, 1.0))],
 )
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_a_wrong_or_missing_ks_coefficient_is_identified_from_labelled_transitions(
     name: str, true: float, prior: float, bounds: tuple[float, float] | None
 ) -> None:
@@ -239,6 +240,7 @@ def test_a_positive_free_coefficient_cannot_cross_zero() -> None:
     assert learned.current()["nu"] == pytest.approx(1e-4)  # 1 % of the prior
 
 
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_a_run_with_learned_coefficients_continues_bit_for_bit(tmp_path) -> None:
     """Trained to an episode boundary, then extended: the same files and coefficients as one longer run."""
     args = [

@@ -51,6 +51,7 @@ def test_the_loop_runs_its_phases_in_the_order_of_algorithm_1(method: str, tmp_p
         assert run.model.trainer.steps == len(model_phases) * cfg.dyna.model_steps
 
 
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_a_model_setting_changes_neither_the_holdout_split_nor_early_exploration(tmp_path) -> None:
     """Changing --dyna.model-steps (or the rollouts) draws more or fewer numbers in the model phase; the hold-out
     flags of the real transitions, and everything the agent did in the real environment before the model
@@ -68,6 +69,7 @@ def test_a_model_setting_changes_neither_the_holdout_split_nor_early_exploration
     assert not bool((a.real.action == b.real.action).all())  # afterwards the model does change what the agent does
 
 
+@pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_mfrl_and_pimbrl_explore_identically_until_the_model_is_used(tmp_path) -> None:
     """Same seed and update budget: PiMBRL's agent is MFRL's until imagined data first reaches it."""
     _, mf = _run(_pendulum("mfrl"), tmp_path / "mf")
