@@ -418,3 +418,15 @@ def test_a_sweep_trial_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> N
     out = subprocess.run([sys.executable, "-c", run], capture_output=True, text=True, timeout=300)
     assert out.stdout.startswith("True"), out.stdout + out.stderr
     assert json.loads((tmp_path / "trial" / "config.json").read_text())["status"] == "finished"
+
+
+def test_the_builtin_index_is_what_each_builtin_module_declares() -> None:
+    """registry.BUILTIN lets `import pimbrl` register the built-ins without torch: it must equal their SYSTEMs."""
+    import importlib
+
+    from pimbrl.systems import BUILTIN
+
+    for env_id, (module, aliases, steps) in BUILTIN.items():
+        system = importlib.import_module(f"pimbrl.systems.{module}").SYSTEM
+        assert (system.id, system.aliases, system.episode_steps) == (env_id, aliases, steps)
+        assert gym.spec(env_id).entry_point == f"{system.env.__module__}:{system.env.__name__}"
