@@ -86,6 +86,16 @@ class TransitionModel(nn.Module):
         return self(u, a)[:, -1]
 
 
+def silu_mlp(sizes: Sequence[int]) -> nn.Sequential:
+    """A multilayer perceptron ``sizes[0] -> ... -> sizes[-1]`` with SiLU between its linear layers (none after the last)."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers.append(nn.SiLU())
+    return nn.Sequential(*layers)
+
+
 class MLPModel(TransitionModel):
     """``u_{t+1} = canonical(u_t + delta_std * MLP(normalised u_t, scaled a_t))`` (or the absolute state).
 
@@ -104,13 +114,7 @@ class MLPModel(TransitionModel):
             raise ValueError(f"n_intermediate must be >= 1, got {n_intermediate}")
         self.n_intermediate = int(n_intermediate)
         self.predict_increment = predict_increment
-        sizes = [physics.state_dim + physics.action_dim, *hidden, physics.state_dim * self.n_intermediate]
-        layers: list[nn.Module] = []
-        for i in range(len(sizes) - 1):
-            layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-            if i < len(sizes) - 2:
-                layers.append(nn.SiLU())
-        self.net = nn.Sequential(*layers)
+        self.net = silu_mlp([physics.state_dim + physics.action_dim, *hidden, physics.state_dim * self.n_intermediate])
 
     def increments(self, u: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """The predicted increments ``delta_std * MLP(...)`` ``(B, N, state_dim)`` (``predict_increment`` models)."""

@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .networks import silu_mlp
+
 __all__ = ["LearnedReward"]
 
 
@@ -39,17 +41,12 @@ class LearnedReward(nn.Module):
     ) -> None:
         super().__init__()
         self.generator = torch.Generator().manual_seed(int(seed))
-        sizes = [2 * state_dim + action_dim, *hidden, 1]
-        layers: list[nn.Module] = []
+        inputs = 2 * state_dim + action_dim
         with torch.random.fork_rng(devices=[]):  # the initialisation from ``seed``, the global generator untouched
             torch.manual_seed(int(seed))
-            for i in range(len(sizes) - 1):
-                layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-                if i < len(sizes) - 2:
-                    layers.append(nn.SiLU())
-        self.net = nn.Sequential(*layers)
-        self.register_buffer("mean", torch.zeros(sizes[0]))
-        self.register_buffer("std", torch.ones(sizes[0]))
+            self.net = silu_mlp([inputs, *hidden, 1])
+        self.register_buffer("mean", torch.zeros(inputs))
+        self.register_buffer("std", torch.ones(inputs))
         self.register_buffer("target", torch.tensor([0.0, 1.0]))  # mean and std of the rewards
         self.register_buffer("fitted", torch.zeros((), dtype=torch.bool))
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=lr)

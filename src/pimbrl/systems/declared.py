@@ -135,6 +135,17 @@ class _Declared:
         cls.bounds = dict(declared)
         cls.coefficients = tuple(declared)
 
+    def _set_settings(self) -> None:
+        """The solver step, the steps per control step and the action bounds from the class, checked."""
+        cls = type(self)
+        physics = cast(Physics, self)
+        physics.action_low = np.atleast_1d(np.asarray(_declared(cls, "action_low"), dtype=np.float64))
+        physics.action_high = np.atleast_1d(np.asarray(_declared(cls, "action_high"), dtype=np.float64))
+        physics.action_dim = len(physics.action_low)
+        physics.dt = float(_declared(cls, "dt"))
+        physics.substeps = int(_declared(cls, "substeps"))
+        _check_settings(self)
+
     def _set_coefficients(self, values: Mapping[str, Any]) -> None:
         unknown = [k for k in values if k not in self.bounds]
         if unknown:
@@ -186,16 +197,10 @@ class ODESystem(_Declared, Physics):
 
     def __init__(self, **values: float) -> None:
         self._set_coefficients(values)
-        for attr in ("state_dim", "action_low", "action_high", "dt"):
-            _declared(type(self), attr)
-        self.action_low = np.atleast_1d(np.asarray(type(self).action_low, dtype=np.float64))
-        self.action_high = np.atleast_1d(np.asarray(type(self).action_high, dtype=np.float64))
-        self.action_dim = len(self.action_low)
-        self.dt = float(type(self).dt)
-        self.substeps = int(type(self).substeps)
+        _declared(type(self), "state_dim")
         if self.integrator not in ("rk4", "euler"):
             raise SystemSpecError(f"{self.name}: integrator must be 'rk4' or 'euler', got {self.integrator!r}")
-        _check_settings(self)
+        self._set_settings()
 
     def substep(self, u: Array, a: Array) -> Array:
         """One solver step: classic RK4 (default) or explicit Euler, with the action held."""
@@ -270,28 +275,19 @@ class PeriodicPDESystem(_Declared, SemilinearPDE):
 
     method = "rk4"
     reflection_symmetric = False
-    damping = 0.0
-    drift = 0.0
 
     def __init__(self, **values: float) -> None:
         self._set_coefficients(values)
-        for attr in ("dt", "substeps", "action_low", "action_high"):
-            _declared(type(self), attr)
         self.n = int(_declared(type(self), "n"))
         self.length = float(_declared(type(self), "length"))
         self.dx = self.length / self.n
         self.x = np.arange(self.n) * self.dx
         self.state_dim = self.n
-        self.dt = float(type(self).dt)
-        self.substeps = int(type(self).substeps)
-        self.action_low = np.atleast_1d(np.asarray(type(self).action_low, dtype=np.float64))
-        self.action_high = np.atleast_1d(np.asarray(type(self).action_high, dtype=np.float64))
-        self.action_dim = len(self.action_low)
         if self.method not in ("rk4", "euler"):
             raise SystemSpecError(f"{self.name}: method must be 'rk4' or 'euler', got {self.method!r}")
         if self.n < 5 or self.n != _declared(type(self), "n") or not (math.isfinite(self.length) and self.length > 0):
             raise SystemSpecError(f"{self.name}: need a whole number n >= 5 of grid points and a finite length > 0")
-        _check_settings(self)
+        self._set_settings()
         # a FourierOperator offers what the PDE machinery calls on a Stencil here: apply and symbol
         self.linear = self.linear_operator()  # type: ignore[assignment]
         self.actuator_shapes = np.asarray(self.actuators(), dtype=np.float64)
@@ -398,13 +394,31 @@ def declare(
     if not (isinstance(physics_class, type) and issubclass(physics_class, (ODESystem, PeriodicPDESystem))):
         raise SystemSpecError(f"declare() takes a subclass of ODESystem or PeriodicPDESystem, got {physics_class!r}")
     physics_class()  # build it once: a declaration error surfaces here, at import, in one line
-    stem = physics_class.__name__
-    task = type(f"{stem}Task", (DeclaredTask,), {"physics_class": physics_class, "__module__": physics_class.__module__})
-    doc = physics_class.__doc__ or f"The declared system {id}."
-    env = type(f"{stem}Env", (PhysicsEnv,), {"task_class": task, "__doc__": doc, "__module__": physics_class.__module__})
-    vector = type(
-        f"{stem}VectorEnv", (PhysicsVectorEnv,), {"task_class": task, "__doc__": doc, "__module__": physics_class.__module__}
+    task = type(
+        f"{physics_class.__name__}Task", (DeclaredTask,), {"physics_class": physics_class, "__module__": physics_class.__module__}
     )
+    return register_task(task, id, aliases=aliases, preset=preset, out_of_sample=out_of_sample, model_eval=model_eval)
+
+
+def register_task(
+    task: type[DeclaredTask],
+    id: str,
+    *,
+    aliases: tuple[str, ...] = (),
+    preset: Mapping[str, Any] | None = None,
+    out_of_sample: Callable[..., np.ndarray] | None = None,
+    model_eval: Mapping[str, Any] | None = None,
+) -> System:
+    """Build the single and vector environments of a declared system's task and register the system.
+
+    The classes are named after the system's class and documented by its docstring (:func:`declare`,
+    :func:`pimbrl.systems.declare_external`).
+    """
+    physics_class = task.physics_class
+    stem, module = physics_class.__name__, physics_class.__module__
+    doc = physics_class.__doc__ or f"The declared system {id}."
+    env = type(f"{stem}Env", (PhysicsEnv,), {"task_class": task, "__doc__": doc, "__module__": module})
+    vector = type(f"{stem}VectorEnv", (PhysicsVectorEnv,), {"task_class": task, "__doc__": doc, "__module__": module})
     system = System(
         id=id,
         env=env,

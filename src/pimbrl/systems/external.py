@@ -27,10 +27,9 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from ..envs.base import PhysicsEnv, PhysicsVectorEnv
 from ..envs.task import StepOutcome
-from .declared import DeclaredTask, ODESystem, PeriodicPDESystem
-from .registry import System, SystemSpecError, register
+from .declared import DeclaredTask, ODESystem, PeriodicPDESystem, register_task
+from .registry import System, SystemSpecError
 
 __all__ = ["ExternalTask", "declare_external"]
 
@@ -131,19 +130,4 @@ def declare_external(
         raise SystemSpecError(f"{stem}: an external system needs a finite divergence_bound (blow-ups end episodes)")
     if check_reward:
         _check_reward(probe)
-    doc = prior_class.__doc__ or f"The external system {id}."
-    env = type(f"{stem}Env", (PhysicsEnv,), {"task_class": task, "__doc__": doc, "__module__": prior_class.__module__})
-    vector = type(
-        f"{stem}VectorEnv", (PhysicsVectorEnv,), {"task_class": task, "__doc__": doc, "__module__": prior_class.__module__}
-    )
-    return register(
-        System(
-            id=id,
-            env=env,
-            vector_env=vector,
-            episode_steps=int(prior_class.episode_steps),
-            aliases=tuple(aliases),
-            preset=dict(preset or {}),
-            out_of_sample=out_of_sample,
-        )
-    )
+    return register_task(task, id, aliases=aliases, preset=preset, out_of_sample=out_of_sample)

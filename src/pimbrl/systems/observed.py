@@ -41,7 +41,6 @@ class ObservationPhysics(Physics):
         self.action_dim = len(self.action_low)
         self.dt = 1.0
         self.substeps = 1
-        self._arguments = {}
         #: ``f(u, a, u_next) -> rewards``: the learned reward (``None`` until a run sets it)
         self.reward_fn: Callable[[Any, Any, Any], np.ndarray] | None = None
 

@@ -50,8 +50,8 @@ __all__ = [
 ENTRY_POINT_GROUP = "pimbrl.systems"
 
 #: the built-in systems: id -> (module under :mod:`pimbrl.systems`, aliases, episode length). Each module's
-#: ``SYSTEM`` declares the same (tested); this index lets ``import pimbrl`` register them without importing
-#: torch or the environments.
+#: ``SYSTEM`` declares the same (tested), with the envs ``<Name>Env`` and ``<Name>VectorEnv`` (``<Name>``: the
+#: id's name); this index lets ``import pimbrl`` register them without importing torch or the environments.
 BUILTIN: Mapping[str, tuple[str, tuple[str, ...], int]] = MappingProxyType(
     {
         "pimbrl/KuramotoSivashinsky-v0": ("ks", ("ks", "kuramoto-sivashinsky"), 400),
@@ -132,17 +132,8 @@ def register_builtin() -> None:
     """Register the built-in systems with Gymnasium by entry point, importing nothing (idempotent)."""
     for env_id, (module, _, steps) in BUILTIN.items():
         if env_id not in gym.registry:
-            path = f"pimbrl.systems.{module}"
-            name = _CLASS_NAMES[module]
-            gym.register(
-                id=env_id,
-                entry_point=f"{path}:{name}Env",
-                vector_entry_point=f"{path}:{name}VectorEnv",
-                max_episode_steps=steps,
-            )
-
-
-_CLASS_NAMES = {"ks": "KuramotoSivashinsky", "burgers": "Burgers", "cartpole": "CartPole", "pendulum": "Pendulum"}
+            path = f"pimbrl.systems.{module}:{env_id.split('/')[1].rsplit('-v', 1)[0]}"
+            gym.register(id=env_id, entry_point=f"{path}Env", vector_entry_point=f"{path}VectorEnv", max_episode_steps=steps)
 
 
 def register(system: System) -> System:

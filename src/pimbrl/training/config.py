@@ -625,12 +625,12 @@ def _check_runnable(cfg: TrainConfig) -> None:
     check_lr_decay(cfg)
     if cfg.tensorboard:
         check_tensorboard()
-    if cfg.method == "pimbrl" and _task_class(cfg.env) is None:
-        raise ConfigError(
-            f"pimbrl needs the system's equation, and {cfg.env} declares none: use --method mbrl (data-only: the "
-            "observation as the state, the reward learned), or declare the system (docs/systems.md)"
-        )
-    if cfg.method in MODEL_BASED and _task_class(cfg.env) is None:
+    if cfg.method in MODEL_BASED and _task_class(cfg.env) is None:  # an env outside pimbrl: its data only
+        if cfg.method == "pimbrl":
+            raise ConfigError(
+                f"pimbrl needs the system's equation, and {cfg.env} declares none: use --method mbrl (data-only: the "
+                "observation as the state, the reward learned), or declare the system (docs/systems.md)"
+            )
         check_observed(cfg)
     if cfg.method == "pimbrl":
         check_physics_sources(cfg.env, cfg.dyna.physics_sources)
