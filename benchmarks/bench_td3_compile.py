@@ -22,7 +22,7 @@ import time
 import _common
 import torch
 
-from pimbrl.agents import AgentConfig, make_agent
+from pimbrl.agents import TD3Config, make_agent
 from pimbrl.buffers import Batch
 
 OBS, ACT, HIDDEN = 64, 4, (256, 256)
@@ -41,7 +41,7 @@ def _batch(size: int) -> Batch:
 
 
 def _agent(batch_size: int):
-    return make_agent("td3", OBS, ACT, AgentConfig(batch_size=batch_size, hidden=HIDDEN), seed=0)
+    return make_agent(TD3Config(batch_size=batch_size, hidden=HIDDEN), OBS, ACT, seed=0)
 
 
 def _compile(agent) -> None:

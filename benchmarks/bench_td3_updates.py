@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pimbrl.agents import AgentConfig, make_agent
+from pimbrl.agents import TD3Config, make_agent
 from pimbrl.buffers import ReplayBuffer
 
 UPDATES = 1_000
@@ -57,7 +57,7 @@ def bench(obs_dim: int, act_dim: int, n: int = 20_000) -> dict:
     for i in range(0, n, 1000):  # SB3's buffer: one env, rows of shape (1, dim)
         for j in range(i, min(i + 1000, n)):
             sb3.replay_buffer.add(obs[j : j + 1], nxt[j : j + 1], act[j : j + 1], rew[j : j + 1], np.array([False]), [{}])
-    ours = make_agent("td3", obs_dim, act_dim, AgentConfig(batch_size=128, hidden=(256, 256)), seed=0)
+    ours = make_agent(TD3Config(batch_size=128, hidden=(256, 256)), obs_dim, act_dim, seed=0)
     buf = ReplayBuffer(n, obs_dim, act_dim)
     buf.add(obs, act, rew, nxt, np.zeros(n), np.zeros(n))
     sb3.train(gradient_steps=50, batch_size=128)

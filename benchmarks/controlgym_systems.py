@@ -177,12 +177,13 @@ class ControlGymAllenCahn(_ControlGymPrior):
 
 #: 30 episodes; 10 test episodes every 500 steps (an episode of the external simulator takes 2-3 s here)
 PRESET: dict[str, Any] = {
-    "total_steps": 3_000,
-    "warmup_steps": 300,
-    "update_after": 300,
-    "eval_every": 500,
-    "eval_episodes": 10,
-    "model_based": {"utd": 5.0, "dyna": {"rollout_length": 3, "start_model_after": 300, "start_physics_after": 300}},
+    "recipes": {
+        "default": {
+            "about": "the exploratory controlgym study's budget (docs/systems.md)",
+            "settings": {"total_steps": 3_000, "warmup_steps": 300, "update_after": 300, "eval_every": 500, "eval_episodes": 10},
+            "model_based": {"utd": 5.0, "imagine.rollout_length": 3, "model.start_after": 300, "physics.start_after": 300},
+        }
+    }
 }
 
 BURGERS = declare_external(

@@ -1,7 +1,7 @@
 """Evaluate the latest checkpoint of finished runs on two protocols: held-out test states and the authors' 5.
 
 With ``--policy selected`` the policy evaluated is the one model-based policy selection kept
-(``--dyna.select-episodes``; :mod:`pimbrl.training.selection`) instead of the checkpoint's latest.
+(``--imagine.select-episodes``; :mod:`pimbrl.training.selection`) instead of the checkpoint's latest.
 
 For each run directory given (e.g. every ``<method>/seed<k>`` of a ``pimbrl compare`` directory), the
 deterministic policy of its latest checkpoint is run
@@ -94,7 +94,7 @@ def main() -> None:
         "--policy",
         choices=POLICIES,
         default="latest",
-        help="the latest checkpoint's policy, or the one model-based policy selection kept (--dyna.select-episodes)",
+        help="the latest checkpoint's policy, or the one model-based policy selection kept (--imagine.select-episodes)",
     )
     args = parser.parse_args()
     rows = []

@@ -1,7 +1,7 @@
 """The model-error study of docs/results.md: data-only vs physics-informed models, by labelled transitions.
 
 For one environment, runs ``pimbrl model-eval ENV --labels ...`` twice over the same seeds, labels and
-test sets: with the physics loss on the loop's own sources (``train,imagined``, per sub-step units: the
+test sets: with the physics loss on the loop's own sources (``policy,imagined``, per sub-step units: the
 model of the previous release) and with the broad label-free sources in control-step units (the new
 default). Records both summaries, and the ratios data-only / physics-informed of the out-of-sample
 one-step error per label count, in ``benchmarks/results/model_study_<env>.json``.
@@ -23,13 +23,13 @@ import _common
 
 #: per environment: (labels, steps, the broad sources, the PDE model kind)
 SETTINGS = {
-    "cartpole": ("0,100,300,1000", 1500, "train,box", "convlstm"),
-    "pendulum": ("0,100,300,1000", 1500, "train,box", "convlstm"),
-    "burgers": ("0,100,300,1000", 1500, "train,symmetry,scaled,noise", "convlstm"),
-    "ks": ("0,100,1000", 3000, "train,symmetry,scaled,noise", "equivariant"),
+    "cartpole": ("0,100,300,1000", 1500, "policy,box", "convlstm"),
+    "pendulum": ("0,100,300,1000", 1500, "policy,box", "convlstm"),
+    "burgers": ("0,100,300,1000", 1500, "policy,symmetry,scaled,noise", "convlstm"),
+    "ks": ("0,100,1000", 3000, "policy,symmetry,scaled,noise", "equivariant"),
 }
 CONFIGS = {
-    "loop_substep": ("train,imagined", "substep"),
+    "loop_substep": ("policy,imagined", "substep"),
     "broad_step": (None, "step"),
 }
 
@@ -50,11 +50,11 @@ def main() -> None:
         out = Path(args.out_dir) / f"{args.env}_{kind}_{name}"
         cmd = [
             sys.executable, "-m", "pimbrl.cli", "model-eval", args.env, "--run-dir", str(out), "--labels", labels,
-            "--seeds", str(args.seeds), "--sources", sources or broad, "--units", units, "--steps", str(steps),
+            "--seeds", str(args.seeds), "--physics.sources", sources or broad, "--physics.units", units, "--steps", str(steps),
             "--test-transitions", "300", "--rollout-lengths", "1,3,8",
         ]  # fmt: skip
         if args.env in ("burgers", "ks"):
-            cmd += ["--model", kind]
+            cmd += ["--network", kind]
         if not (out / "study.json").exists():
             subprocess.run(cmd, check=True)
         study = json.loads((out / "study.json").read_text())

@@ -19,7 +19,7 @@ Optional variants with the physics inside the model (:mod:`pimbrl.models.hybrid`
 * ``physics-true``: the true system's coarse scheme as the model (the upper reference of these).
 
 Flags after the options go to every variant; ``--pimbrl-args`` to the pimbrl variants only (e.g.
-``--pimbrl-args=--dyna.physics-start=0``). Each run is a separate process (one thread), ``--jobs`` at a
+``--pimbrl-args=--physics.alone-from=0``). Each run is a separate process (one thread), ``--jobs`` at a
 time; finished runs are skipped, interrupted ones resumed, and a run directory that holds a run of another
 configuration is refused (``--rerun`` moves it aside). Prints and records (``--name``:
 ``benchmarks/results/<name>.json``) per run the steps to each threshold, the final and best returns, the
@@ -64,32 +64,32 @@ OPTIONAL_VARIANTS = ("pimbrl-learned-correction", "physics-wrong", "physics-lear
 
 
 def uses_pimbrl(variant: str) -> bool:
-    """Whether ``variant`` runs the method pimbrl (and takes ``--pimbrl-args``)."""
+    """Whether ``variant`` runs a method with the physics loss, pimbrl or pihybrid (and takes ``--pimbrl-args``)."""
     flags = variant_args(variant, "", "", "")
-    return flags[flags.index("--method") + 1] == "pimbrl"
+    return flags[flags.index("--method") + 1] in ("pimbrl", "pihybrid")
 
 
 def variant_args(variant: str, true: str, prior: str, learn: str) -> list[str]:
     """`pimbrl train` flags of one variant (the environment always gets the true coefficients)."""
     env_kwargs = ["--env-kwargs", json.dumps(parse_prior(true))]
     if variant == "mbrl":
-        return ["--method", "mbrl", *env_kwargs, "--dyna.physics-prior", prior]
+        return ["--method", "mbrl", *env_kwargs, "--model.prior", prior]
     if variant == "pimbrl-wrong":
-        return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior]
+        return ["--method", "pimbrl", *env_kwargs, "--model.prior", prior]
     if variant == "pimbrl-learned":
-        return ["--method", "pimbrl", *env_kwargs, "--dyna.physics-prior", prior, "--dyna.learn-coefficients", learn]
+        return ["--method", "pimbrl", *env_kwargs, "--model.prior", prior, "--learn.coefficients", learn]
     if variant == "pimbrl-learned-correction":
         return variant_args("pimbrl-learned", true, prior, f"{learn},correction")
     if variant == "pimbrl-true":
         return ["--method", "pimbrl", *env_kwargs]
     if variant == "physics-wrong":
-        return ["--method", "mbrl", *env_kwargs, "--dyna.physics-prior", prior, "--dyna.model", "physics"]
+        return ["--method", "known-scheme", *env_kwargs, "--model.prior", prior]
     if variant == "physics-learned":
-        return [*variant_args("pimbrl-learned", true, prior, learn), "--dyna.model", "physics"]
+        return ["--method", "identified-scheme", *env_kwargs, "--model.prior", prior, "--learn.coefficients", learn]
     if variant == "hybrid-learned":
-        return [*variant_args("pimbrl-learned", true, prior, learn), "--dyna.model", "hybrid"]
+        return ["--method", "pihybrid", *env_kwargs, "--model.prior", prior, "--learn.coefficients", learn]
     if variant == "physics-true":
-        return ["--method", "mbrl", *env_kwargs, "--dyna.model", "physics"]
+        return ["--method", "known-scheme", *env_kwargs]
     raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS + OPTIONAL_VARIANTS)}")
 
 
@@ -302,7 +302,7 @@ def main() -> None:
     parser.add_argument(
         "--pimbrl-args",
         default="",
-        help="`pimbrl train` flags for the pimbrl variants only, e.g. --pimbrl-args='--dyna.physics-start 0' "
+        help="`pimbrl train` flags for the pimbrl variants only, e.g. --pimbrl-args='--physics.alone-from 0' "
         "(use = when the value starts with --; flags after the options go to every variant)",
     )
     parser.add_argument("--name", default=None, help="record as benchmarks/results/<name>.json")

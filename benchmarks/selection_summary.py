@@ -1,6 +1,6 @@
 """What model-based policy selection kept, against the latest policy, for runs trained with it.
 
-For each run directory trained with ``--dyna.select-episodes`` this reads ``evaluations.csv`` and
+For each run directory trained with ``--imagine.select-episodes`` this reads ``evaluations.csv`` and
 ``selection.csv`` (nothing is re-run) and prints and records:
 
 * the mean test return of the latest policy, the best evaluation, the mean of the last five evaluations;
@@ -29,7 +29,7 @@ import _common
 
 def _rows(path: Path) -> list[dict[str, str]]:
     if not path.exists():
-        raise SystemExit(f"{path} does not exist: was the run trained with --dyna.select-episodes N?")
+        raise SystemExit(f"{path} does not exist: was the run trained with --imagine.select-episodes N?")
     with open(path, newline="") as fh:
         return list(csv.DictReader(fh))
 

@@ -60,13 +60,20 @@ SYSTEM = declare(
     AllenCahn,
     "example/AllenCahn-v0",
     aliases=("allen-cahn",),
-    preset={
-        "total_steps": 3_000,
-        "warmup_steps": 200,
-        "update_after": 200,
-        "eval_every": 200,
-        "eval_episodes": 20,
-        "model_based": {"utd": 5.0, "dyna": {"rollout_length": 3, "start_model_after": 200, "start_physics_after": 200}},
+    preset={  # the structure of a preset file, given as a mapping (duffing.py names a file instead)
+        "recipes": {
+            "default": {
+                "about": "a short budget for an example",
+                "settings": {
+                    "total_steps": 3_000,
+                    "warmup_steps": 200,
+                    "update_after": 200,
+                    "eval_every": 200,
+                    "eval_episodes": 20,
+                },
+                "model_based": {"utd": 5.0, "imagine.rollout_length": 3, "model.start_after": 200, "physics.start_after": 200},
+            }
+        }
     },
     out_of_sample=lambda task, rng, n: 3.0 * task.sample_initial_states(rng, n),
 )

@@ -7,6 +7,8 @@ Train it from the command line (nothing in pimbrl is edited):
     pimbrl train duffing --import examples/duffing.py --method pimbrl --steps 3000
 """
 
+from pathlib import Path
+
 import numpy as np
 
 from pimbrl.systems import Coefficient, ODESystem, declare, xp_of
@@ -50,12 +52,6 @@ SYSTEM = declare(
     Duffing,
     "example/Duffing-v0",
     aliases=("duffing",),
-    preset={
-        "total_steps": 10_000,
-        "warmup_steps": 1_000,
-        "update_after": 1_000,
-        "eval_every": 500,
-        "model_based": {"utd": 5.0, "dyna": {"rollout_length": 20, "start_model_after": 600, "start_physics_after": 1_000}},
-    },
+    preset=Path(__file__).with_suffix(".yaml"),  # its recipes, in duffing.yaml beside this file
     out_of_sample=lambda task, rng, n: rng.uniform(-2.5, 2.5, size=(n, 2)),
 )

@@ -7,7 +7,7 @@ import pytest
 import torch
 from gymnasium import spaces
 
-from pimbrl.agents import AgentConfig, make_agent
+from pimbrl.agents import AGENT_TYPES, TD3Config, make_agent
 from pimbrl.agents.networks import CriticEnsemble
 from pimbrl.buffers import Batch, ReplayBuffer
 from pimbrl.spaces import ActionAdapter
@@ -17,7 +17,7 @@ from .test_training import _table
 from .toy_env import register
 
 register()
-SMALL = {"hidden": (64, 64), "batch_size": 64, "actor_lr": 3e-3, "critic_lr": 3e-3}
+SMALL = {"agent.hidden": (64, 64), "agent.batch_size": 64, "agent.actor_lr": 3e-3, "agent.critic_lr": 3e-3}
 
 
 def _train_toy(tmp_path, agent: str, env: str = "toy/Reach-v0", steps: int = 3000, seed: int = 0, **over):
@@ -32,9 +32,9 @@ def _train_toy(tmp_path, agent: str, env: str = "toy/Reach-v0", steps: int = 300
             "eval_every": 500,
             "eval_episodes": 10,
             "checkpoint_every": 1000,
+            **SMALL,
             **over,
         },
-        SMALL,
     )
     run = create_run(cfg, str(tmp_path / f"{agent}-{seed}"), progress=False)
     return train(run), run
@@ -44,7 +44,7 @@ def _train_toy(tmp_path, agent: str, env: str = "toy/Reach-v0", steps: int = 300
 @pytest.mark.parametrize("agent", ["td3", "ddpg", "sac", "td3-layer-norm"])
 def test_agent_learns_the_toy_task(tmp_path, agent: str) -> None:
     name, _, norm = agent.partition("-")
-    over = {"agent.critic_layer_norm": True} if norm else {}
+    over = {"experimental.critic_layer_norm": True} if norm else {}
     summary, trainer = _train_toy(tmp_path, name, steps=2000, **over)
     rng = np.random.default_rng(0)
     random_return = trainer.evaluator.run(lambda o: rng.uniform(-1, 1, (len(o), 2))).mean
@@ -91,7 +91,8 @@ def test_same_seed_gives_identical_metrics(tmp_path) -> None:
 @pytest.mark.parametrize("name", ["td3", "ddpg", "sac"])
 def test_td_target_bootstraps_through_truncation(name: str) -> None:
     torch.manual_seed(0)
-    agent = make_agent(name, 3, 1, AgentConfig(hidden=(8,), gamma=0.9, target_smoothing=False), seed=0)
+    extra = {"target_smoothing": False} if name == "td3" else {}
+    agent = make_agent(AGENT_TYPES[name](hidden=(8,), gamma=0.9, **extra), 3, 1, seed=0)
 
     n_critics = 1 if name == "ddpg" else 2
     agent.critic_targ.forward = lambda obs, act: torch.full((n_critics, obs.shape[0]), 10.0)
@@ -125,11 +126,11 @@ def test_agent_state_roundtrip_reproduces_updates() -> None:
         np.zeros(300),
     )
     for name in ("td3", "sac"):
-        a = make_agent(name, 4, 2, AgentConfig(hidden=(16,)), seed=3)
+        a = make_agent(AGENT_TYPES[name](hidden=(16,)), 4, 2, seed=3)
         for _ in range(5):
             a.update(buf.sample(32, np.random.default_rng(1)))
         state = a.state_dict()
-        b = make_agent(name, 4, 2, AgentConfig(hidden=(16,)), seed=99)
+        b = make_agent(AGENT_TYPES[name](hidden=(16,)), 4, 2, seed=99)
         b.load_state_dict(state)
         batch = buf.sample(32, np.random.default_rng(2))
         ma, mb = a.update(batch), b.update(batch)
@@ -185,9 +186,7 @@ def test_preactivation_penalty_pulls_the_actor_off_tanh_saturation() -> None:
     batch = Batch(obs, torch.zeros(256, 1), torch.zeros(256), obs, torch.zeros(256), torch.zeros(256))
     sizes = {}
     for penalty in (0.0, 10.0):
-        agent = make_agent(
-            "td3", 3, 1, AgentConfig(hidden=(16,), policy_delay=1, actor_lr=0.05, preactivation_penalty=penalty), seed=0
-        )
+        agent = make_agent(TD3Config(hidden=(16,), policy_delay=1, actor_lr=0.05, preactivation_penalty=penalty), 3, 1, seed=0)
         with torch.no_grad():
             agent.actor.net[-2].bias.fill_(5.0)  # tanh(5) = 0.9999: saturated
         before = float(agent.actor.preactivation(obs).abs().mean())

@@ -42,7 +42,7 @@ def _fake_run(path: Path, env: str, method: str = "mfrl", status: str = "finishe
     [
         ("ks-contours", "pimbrl/Burgers-v0", "mfrl", "needs a Kuramoto-Sivashinsky run"),
         ("burgers", "pimbrl/KuramotoSivashinsky-v0", "mfrl", "needs a Burgers run"),
-        ("rollouts", "pimbrl/KuramotoSivashinsky-v0", "mfrl", "needs an mbrl or pimbrl run"),
+        ("rollouts", "pimbrl/KuramotoSivashinsky-v0", "mfrl", "needs a run with a model"),
     ],
 )
 def test_a_figure_that_does_not_fit_the_run_is_a_message(kind, env, method, expected, tmp_path, capsys) -> None:
@@ -57,12 +57,12 @@ def test_a_figure_that_does_not_fit_the_run_is_a_message(kind, env, method, expe
 
 def test_rollouts_refuse_a_model_that_was_never_trained(tmp_path, capsys) -> None:
     run = tmp_path / "run"
-    args = ["train", "pendulum", "--method", "pimbrl", "--run-dir", str(run), *QUICK, "--dyna.start-model-after", "1000"]
+    args = ["train", "pendulum", "--method", "pimbrl", "--run-dir", str(run), *QUICK, "--model.start-after", "1000"]
     assert main(args) == 0
     capsys.readouterr()
     assert main(["figure", "rollouts", str(run), "--out", str(tmp_path / "r.png")]) == 2
     line = _error_line(capsys)
-    assert "model was never trained" in line and "dyna.start_model_after = 1000" in line
+    assert "model was never trained" in line and "model.start_after = 1000" in line
     assert not (tmp_path / "r.png").exists()
 
 
@@ -189,8 +189,8 @@ def test_a_budget_that_ends_before_warm_up_and_model_is_warned_about(capsys) -> 
     err = capsys.readouterr().err
     assert "warning: --steps 1500 ends before the first agent update (update_after = 4000)" in err
     assert "--update-after" in err
-    assert "warning: --steps 1500 ends before the model is first trained (dyna.start_model_after = 6000)" in err
-    assert "--dyna.start-model-after" in err
+    assert "warning: --steps 1500 ends before the model is first fitted (model.start_after = 6000)" in err
+    assert "--model.start-after" in err
 
 
 def test_preset_returns_kept_on_a_changed_system_are_warned_about(capsys) -> None:
@@ -200,16 +200,16 @@ def test_preset_returns_kept_on_a_changed_system_are_warned_about(capsys) -> Non
     changed = ["--env-kwargs", '{"convection": 1.3}']
     assert main([*base, *changed, "--method", "pimbrl"]) == 0
     err = capsys.readouterr().err
-    assert "warning: threshold = -55 (the preset's) counts a run as solved" in err
+    assert "warning: threshold = -55 (the recipe's) counts a run as solved" in err
     assert "give --threshold for this system" in err
-    assert "warning: dyna.finetune_return = -55 (the preset's) switches to model-free fine-tuning" in err
-    assert "--env-kwargs change convection" in err and "--dyna.finetune-return none never to switch" in err
+    assert "warning: finetune.at_return = -55 (the recipe's) switches to model-free fine-tuning" in err
+    assert "--env-kwargs change convection" in err and "--finetune.at-return none never to switch" in err
     assert main([*base, *changed, "--method", "mfrl"]) == 0  # no model, no switch: the threshold alone
     err = capsys.readouterr().err
     assert "threshold = -55" in err and "finetune_return" not in err
     for quiet in (
-        [*base, *changed, "--method", "pimbrl", "--threshold", "-30", "--dyna.finetune-return", "none"],
-        [*base, *changed, "--method", "mbrl", "--threshold", "-30", "--dyna.finetune-return", "-30"],
+        [*base, *changed, "--method", "pimbrl", "--threshold", "-30", "--finetune.at-return", "none"],
+        [*base, *changed, "--method", "mbrl", "--threshold", "-30", "--finetune.at-return", "-30"],
         [*base, "--env-kwargs", '{"convection": 1.0}', "--method", "pimbrl"],  # the registered value
         [*base, "--method", "pimbrl"],  # the registered system
     ):
@@ -233,23 +233,23 @@ def test_compare_warns_each_method_of_preset_returns_on_a_changed_system(tmp_pat
         main([*argv, "--", "--env-kwargs", '{"convection": 1.3}'])
     err = capsys.readouterr().err
     assert "pimbrl compare: warning: mfrl: threshold = -55" in err
-    assert "pimbrl compare: warning: pimbrl: dyna.finetune_return = -55" in err
-    assert "mfrl: dyna.finetune_return" not in err
+    assert "pimbrl compare: warning: pimbrl: finetune.at_return = -55" in err
+    assert "mfrl: finetune.at_return" not in err
     with pytest.raises(_Stopped):
-        main([*argv, "--threshold", "-30", "--", "--env-kwargs", '{"convection": 1.3}', "--dyna.finetune-return", "none"])
+        main([*argv, "--threshold", "-30", "--", "--env-kwargs", '{"convection": 1.3}', "--finetune.at-return", "none"])
     assert "warning" not in capsys.readouterr().err
 
 
 def test_physics_start_before_the_first_update_phase_is_warned_about(capsys) -> None:
     # model phases run from update_after on: a physics_start before it trains nothing until then
     base = ["train", "ks", "--method", "pimbrl", "--steps", "20000", "--print-config"]
-    assert main([*base, "--dyna.physics-start", "0"]) == 0  # the preset: update_after 4000, labels at 6000
+    assert main([*base, "--physics.alone-from", "0"]) == 0  # the preset: update_after 4000, labels at 6000
     err = capsys.readouterr().err
-    assert "dyna.physics_start = 0 is before update_after = 4000" in err
+    assert "physics.alone_from = 0 is before update_after = 4000" in err
     assert "the physics-only training runs from 4000 to 6000" in err and "--update-after" in err
-    assert main([*base, "--dyna.physics-start", "0", "--dyna.start-model-after", "4000"]) == 0
+    assert main([*base, "--physics.alone-from", "0", "--model.start-after", "4000"]) == 0
     assert "no phase trains on the physics alone" in capsys.readouterr().err
-    assert main([*base, "--dyna.physics-start", "4000"]) == 0
+    assert main([*base, "--physics.alone-from", "4000"]) == 0
     assert "warning" not in capsys.readouterr().err
 
 

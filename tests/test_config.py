@@ -13,12 +13,19 @@ from pathlib import Path
 import pytest
 
 from pimbrl.cli import main
-from pimbrl.config import ConfigError, replace_path, to_dict
+from pimbrl.config import ConfigError
 from pimbrl.experiments.compare import REQUEST_FILE, compare, plan_runs
 from pimbrl.experiments.sweep import load_sweep, plan_trials
-from pimbrl.training import TrainConfig
+from pimbrl.training import MFRL
 from pimbrl.training.cli_args import config_from_argv, parse_train_args
-from pimbrl.training.config import config_from_dict, inapplicable_reason, is_pde_env, resolve_config
+from pimbrl.training.config import (
+    config_from_dict,
+    config_to_dict,
+    get_setting,
+    inapplicable_reason,
+    is_pde_env,
+    resolve_config,
+)
 
 SRC = Path(__file__).resolve().parent.parent / "src" / "pimbrl"
 PENDULUM = "pimbrl/Pendulum-v0"
@@ -30,17 +37,17 @@ TINY_RUN = {"total_steps": 200, "warmup_steps": 100, "update_after": 100, "eval_
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["pendulum", "--method", "mfrl", "--dyna.rollout-length", "7"],
-         "--dyna.rollout-length applies to the model-based methods mbrl and pimbrl, not mfrl"),
-        (["pendulum", "--method", "pimbrl", "--dyna.n-intermediate", "9"],
-         "--dyna.n-intermediate applies to the PDE systems (Burgers, Kuramoto-Sivashinsky, a declared PDE), not pimbrl/Pendulum-v0"),
-        (["cartpole", "--method", "pimbrl", "--dyna.residual", "solver"], "--dyna.residual applies to the PDE systems"),
-        (["pendulum", "--agent.init-alpha", "0.3"], "--agent.init-alpha applies to the agent sac (its entropy temperature), not td3"),
-        (["pendulum", "--agent", "ddpg", "--agent.autotune-alpha", "false"], "--agent.autotune-alpha applies to the agent sac"),
-        (["burgers", "--method", "mbrl", "--dyna.physics-weight", "2"], "--dyna.physics-weight applies to pimbrl"),
-        (["pendulum", "--agent", "ddpg", "--agent.policy-delay", "3"], "--agent.policy-delay applies to the agent td3"),
-        (["pendulum", "--agent", "sac", "--agent.target-noise", "0.1"], "--agent.target-noise applies to the agent td3"),
-        (["pendulum", "--agent", "sac", "--agent.exploration-noise", "0.2"], "--agent.exploration-noise applies to the agents td3 and ddpg"),
+        (["pendulum", "--method", "mfrl", "--imagine.rollout-length", "7"],
+         "--imagine.rollout-length is a setting of --method mbrl, pimbrl, known-scheme, identified-scheme, hybrid, pihybrid, not mfrl"),
+        (["pendulum", "--method", "pimbrl", "--model.n-intermediate", "9"],
+         "--model.n-intermediate applies to the PDE systems (Burgers, Kuramoto-Sivashinsky, a declared PDE), not pimbrl/Pendulum-v0"),
+        (["cartpole", "--method", "pimbrl", "--model.scheme", "solver"], "--model.scheme applies to the PDE systems"),
+        (["pendulum", "--agent.init-alpha", "0.3"], "--agent.init-alpha is a setting of the agent sac, not td3"),
+        (["pendulum", "--agent", "ddpg", "--agent.autotune-alpha", "false"], "--agent.autotune-alpha is a setting of the agent sac, not ddpg"),
+        (["burgers", "--method", "mbrl", "--physics.weight", "2"], "--physics.weight is a setting of --method pimbrl, pihybrid, not mbrl"),
+        (["pendulum", "--agent", "ddpg", "--agent.policy-delay", "3"], "--agent.policy-delay is a setting of the agent td3, not ddpg"),
+        (["pendulum", "--agent", "sac", "--agent.target-noise", "0.1"], "--agent.target-noise is a setting of the agent td3, not sac"),
+        (["pendulum", "--agent", "sac", "--agent.exploration-noise", "0.2"], "--agent.exploration-noise is a setting of the agent td3 and ddpg, not sac"),
     ],
 )  # fmt: skip
 def test_a_flag_that_does_not_apply_is_an_error_that_says_why(argv, message, tmp_path, capsys) -> None:
@@ -52,9 +59,9 @@ def test_a_flag_that_does_not_apply_is_an_error_that_says_why(argv, message, tmp
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["ks", "--dyna.reset-start-symmetry", "true"], "acts on reset starts, and --dyna.reset-start-fraction is 0"),
+        (["ks", "--experimental.reset-start-symmetry", "true"], "acts on reset starts, and --imagine.reset-start-fraction is 0"),
         (
-            ["pendulum", "--dyna.reset-start-fraction", "0.5", "--dyna.reset-start-symmetry", "true"],
+            ["pendulum", "--imagine.reset-start-fraction", "0.5", "--experimental.reset-start-symmetry", "true"],
             "needs a PDE on a periodic grid (shifts, reflection); pimbrl/Pendulum-v0 has none",
         ),
     ],
@@ -66,10 +73,11 @@ def test_symmetric_reset_starts_need_reset_starts_and_a_pde(tmp_path, capsys, ar
 
 
 def test_rollout_start_shares_over_one_are_an_error_that_says_why(tmp_path, capsys) -> None:
-    argv = ["pendulum", "--method", "mbrl", "--dyna.imagined-start-fraction", "0.6", "--dyna.reset-start-fraction", "0.5"]
+    argv = ["pendulum", "--method", "mbrl", "--imagine.imagined-start-fraction", "0.6", "--imagine.reset-start-fraction", "0.5"]
     assert main(["train", *argv, "--run-dir", str(tmp_path / "r"), "--print-config"]) == 2
     assert (
-        "--dyna.imagined-start-fraction 0.6 and --dyna.reset-start-fraction 0.5 add up to more than 1" in capsys.readouterr().err
+        "--imagine.imagined-start-fraction 0.6 and --imagine.reset-start-fraction 0.5 add up to more than 1"
+        in capsys.readouterr().err
     )
     assert not (tmp_path / "r").exists()
 
@@ -77,21 +85,23 @@ def test_rollout_start_shares_over_one_are_an_error_that_says_why(tmp_path, caps
 @pytest.mark.parametrize(
     "argv",
     [
-        ["burgers", "--method", "pimbrl", "--dyna.n-intermediate", "9", "--dyna.residual", "solver"],
+        ["burgers", "--method", "pimbrl", "--model.n-intermediate", "9", "--model.scheme", "solver"],
         ["pendulum", "--agent", "sac", "--agent.init-alpha", "0.3", "--agent.target-entropy", "none"],
         ["pendulum", "--agent", "ddpg", "--agent.exploration-noise", "0.3"],
-        ["pendulum", "--method", "mbrl", "--dyna.rollout-length", "7", "--agent.policy-delay", "3"],
+        ["pendulum", "--method", "mbrl", "--imagine.rollout-length", "7", "--agent.policy-delay", "3"],
     ],
 )
 def test_flags_that_apply_are_accepted(argv, capsys) -> None:
     assert main(["train", *argv, "--print-config"]) == 0
-    assert json.loads(capsys.readouterr().out)["method"] in ("mfrl", "mbrl", "pimbrl")
+    assert json.loads(capsys.readouterr().out)["method"]["name"] in ("mfrl", "mbrl", "pimbrl")
 
 
 def test_presets_are_not_checked_only_explicit_overrides() -> None:
-    # the model-based preset sets dyna fields; mfrl's presets do not make its config invalid
-    assert resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "mfrl"}).dyna.rollout_length == 3
-    assert resolve_config(PENDULUM, {"method": "mbrl"}).dyna.start_physics_after == 1_000
+    # a recipe's model settings go to the methods that have them; mfrl's recipe does not make its config invalid
+    assert resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "mfrl"}).method == MFRL()
+    assert resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "mbrl"}).method.imagine.rollout_length == 3
+    assert resolve_config(PENDULUM, {"method": "pimbrl"}).method.physics.start_after == 1_000
+    assert not hasattr(resolve_config(PENDULUM, {"method": "mbrl"}).method, "physics")  # mbrl has no physics loss
     assert is_pde_env("pimbrl/Burgers-v0") and is_pde_env("pimbrl/KuramotoSivashinsky-v0")
     assert not is_pde_env(PENDULUM) and not is_pde_env("pimbrl/CartPole-v0") and not is_pde_env("Pendulum-v1")
     assert inapplicable_reason(PENDULUM, "pimbrl", "td3", "utd") is None
@@ -101,38 +111,31 @@ def test_presets_are_not_checked_only_explicit_overrides() -> None:
 def test_overrides_are_type_checked_not_converted() -> None:
     with pytest.raises(ConfigError, match=r"seed must be an integer, got 1\.7"):
         resolve_config(PENDULUM, {"seed": 1.7})
-    with pytest.raises(ConfigError, match=r"dyna\.rollout_length must be an integer, got 7\.0 \(write 7\)"):
-        resolve_config(PENDULUM, {"method": "pimbrl", "dyna.rollout_length": 7.0})
+    with pytest.raises(ConfigError, match=r"imagine\.rollout_length must be an integer, got 7\.0 \(write 7\)"):
+        resolve_config(PENDULUM, {"method": "pimbrl", "imagine.rollout_length": 7.0})
     with pytest.raises(ConfigError, match="tensorboard must be true or false, got 1"):
         resolve_config(PENDULUM, {"tensorboard": 1})
-    with pytest.raises(ConfigError, match=r"unknown configuration field 'dyna\.rollout_lenght'"):
-        resolve_config(PENDULUM, {"dyna.rollout_lenght": 3})
-    cfg = resolve_config(PENDULUM, {"utd": 2, "agent.hidden": [8, 8], "agent_config.gamma": 0.9})
-    assert cfg.utd == 2.0 and isinstance(cfg.utd, float) and cfg.agent_config.hidden == (8, 8)
-    assert cfg.agent_config.gamma == 0.9
-
-
-def test_replace_path_addresses_nested_configs_by_prefix_and_checks_types() -> None:
-    cfg = TrainConfig()
-    assert replace_path(cfg, "agent.gamma", 0.9).agent_config.gamma == 0.9
-    assert replace_path(cfg, "agent", "sac").agent == "sac"
-    assert replace_path(cfg, "dyna.rollout_length", 7).dyna.rollout_length == 7
-    with pytest.raises(ConfigError, match="must be an integer"):
-        replace_path(cfg, "dyna.rollout_length", 1.7)
-    with pytest.raises(ConfigError, match=r"unknown configuration field 'agent\.nope'"):
-        replace_path(cfg, "agent.nope", 1)
+    with pytest.raises(
+        ConfigError, match=r"unknown setting 'imagine\.rollout_lenght' \(did you mean 'imagine\.rollout_length'\?\)"
+    ):
+        resolve_config(PENDULUM, {"imagine.rollout_lenght": 3})
+    with pytest.raises(ConfigError, match=r"^dyna\.rollout_length is now imagine\.rollout_length \(--imagine\.rollout-length\)$"):
+        resolve_config(PENDULUM, {"dyna.rollout_length": 3})  # an old path names its new one
+    cfg = resolve_config(PENDULUM, {"utd": 2, "agent.hidden": [8, 8], "agent.gamma": 0.9})
+    assert cfg.utd == 2.0 and isinstance(cfg.utd, float) and cfg.agent.hidden == (8, 8)
+    assert cfg.agent.gamma == 0.9
 
 
 def test_train_flags_parse_into_typed_overrides_below_the_cli() -> None:
-    assert parse_train_args(["--steps", "200", "--agent.gamma", "0.9", "--dyna.rollout-length", "4"]) == {
+    assert parse_train_args(["--steps", "200", "--agent.gamma", "0.9", "--imagine.rollout-length", "4"]) == {
         "total_steps": 200,
         "agent.gamma": 0.9,
-        "dyna.rollout_length": 4,
+        "imagine.rollout_length": 4,
     }
     with pytest.raises(ConfigError, match="bad train arguments"):
         parse_train_args(["--no-such-flag", "1"])
-    cfg = config_from_argv(["ks", "--method", "pimbrl", "--dyna.finetune-return", "none"])
-    assert cfg.env == "pimbrl/KuramotoSivashinsky-v0" and cfg.dyna.finetune_return is None
+    cfg = config_from_argv(["ks", "--method", "pimbrl", "--finetune.at-return", "none"])
+    assert cfg.env == "pimbrl/KuramotoSivashinsky-v0" and cfg.method.finetune.at_return is None
 
 
 # ---------------------------------------------------------------------------------- train --config
@@ -144,16 +147,16 @@ def test_train_runs_a_config_file_and_rejects_other_flags_with_it(tmp_path, caps
     assert main(["train", "--config", str(path), "--print-config"]) == 0
     assert json.loads(capsys.readouterr().out) == json.loads(printed)
     assert config_from_dict(json.loads(printed)) == resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "utd": 3.0})
-    assert main(["train", "--config", str(path), "--utd", "4", "--dyna.model-steps", "2", "--print-config"]) == 2
+    assert main(["train", "--config", str(path), "--utd", "4", "--fit.steps", "2", "--print-config"]) == 2
     err = capsys.readouterr().err
-    assert "cannot be combined with --utd, --dyna.model-steps" in err
+    assert "cannot be combined with --utd, --fit.steps" in err
     assert main(["train", "burgers", "--config", str(path), "--print-config"]) == 2
     assert "cannot be combined with the environment 'burgers'" in capsys.readouterr().err
     bad = json.loads(printed)
-    bad["dyna"]["rollout_length"] = 2.5
+    bad["method"]["imagine"]["rollout_length"] = 2.5
     path.write_text(json.dumps(bad))
     assert main(["train", "--config", str(path), "--print-config"]) == 2
-    assert f"{path}: dyna.rollout_length must be an integer, got 2.5" in capsys.readouterr().err
+    assert f"{path}: imagine.rollout_length must be an integer, got 2.5" in capsys.readouterr().err
     assert main(["train", "--print-config"]) == 2
     assert "needs an environment" in capsys.readouterr().err
 
@@ -167,9 +170,9 @@ def _sweep(tmp_path, **fields) -> Path:
 
 
 def test_sweep_values_are_typed_and_keys_known(tmp_path) -> None:
-    with pytest.raises(ConfigError, match=r"grid: dyna\.rollout_length must be an integer, got 1\.7"):
-        load_sweep(_sweep(tmp_path, methods=["pimbrl"], grid={"dyna.rollout_length": [3, 1.7]}))
-    with pytest.raises(ConfigError, match=r"unknown configuration field 'agent\.gama'"):
+    with pytest.raises(ConfigError, match=r"grid: imagine\.rollout_length must be an integer, got 1\.7"):
+        load_sweep(_sweep(tmp_path, methods=["pimbrl"], grid={"imagine.rollout_length": [3, 1.7]}))
+    with pytest.raises(ConfigError, match=r"unknown setting 'agent\.gama' \(did you mean 'agent\.gamma'\?\)"):
         load_sweep(_sweep(tmp_path, grid={"agent.gama": [0.9]}))
     with pytest.raises(ConfigError, match=r"'seeds' must be a list of integers >= 0, got 1\.7"):
         load_sweep(_sweep(tmp_path, seeds=[0, 1.7]))
@@ -186,17 +189,21 @@ def test_sweep_train_args_become_typed_overrides_and_trials_carry_configs(tmp_pa
     assert spec.overrides == {"total_steps": 200, "agent.hidden": (16, 16)}
     trials = plan_trials(spec, tmp_path / "out")
     assert [t.config.utd for t in trials] == [1.0, 2.0] and [t.setting for t in trials] == ["utd=1", "utd=2"]
-    assert all(t.config.total_steps == 200 and t.config.agent_config.hidden == (16, 16) for t in trials)
+    assert all(t.config.total_steps == 200 and t.config.agent.hidden == (16, 16) for t in trials)
 
 
 def test_sweep_overrides_go_to_the_trials_they_fit_grid_keys_to_all(tmp_path) -> None:
-    spec = load_sweep(_sweep(tmp_path, methods=["mfrl", "pimbrl"], overrides={"dyna.model_steps": 5}))
+    spec = load_sweep(_sweep(tmp_path, methods=["mfrl", "pimbrl"], overrides={"fit.steps": 5}))
     by_method = {t.method: t.config for t in plan_trials(spec, tmp_path / "out")}
-    assert by_method["pimbrl"].dyna.model_steps == 5 and by_method["mfrl"].dyna.model_steps == 50
-    with pytest.raises(ConfigError, match="applies to the model-based methods mbrl and pimbrl, not mfrl"):
-        plan_trials(load_sweep(_sweep(tmp_path, overrides={"dyna.model_steps": 5})), tmp_path / "out")
-    with pytest.raises(ConfigError, match=r"trial pimbrl/Pendulum-v0 mfrl dyna\.rollout_length=3 seed 0: --dyna\.rollout-length"):
-        plan_trials(load_sweep(_sweep(tmp_path, methods=["pimbrl", "mfrl"], grid={"dyna.rollout_length": [3]})), tmp_path / "o")
+    assert by_method["pimbrl"].method.fit.steps == 5 and by_method["mfrl"].method == MFRL()
+    with pytest.raises(ConfigError, match="is a setting of --method mbrl, pimbrl, identified-scheme, hybrid, pihybrid, not mfrl"):
+        plan_trials(load_sweep(_sweep(tmp_path, overrides={"fit.steps": 5})), tmp_path / "out")
+    with pytest.raises(
+        ConfigError, match=r"trial pimbrl/Pendulum-v0 mfrl imagine\.rollout_length=3 seed 0: --imagine\.rollout-length"
+    ):
+        plan_trials(
+            load_sweep(_sweep(tmp_path, methods=["pimbrl", "mfrl"], grid={"imagine.rollout_length": [3]})), tmp_path / "o"
+        )
 
 
 def test_shipped_sweep_files_still_load(tmp_path) -> None:
@@ -205,16 +212,21 @@ def test_shipped_sweep_files_still_load(tmp_path) -> None:
     assert files
     for path in files:
         for trial in plan_trials(load_sweep(path), tmp_path):
-            assert trial.config.method == trial.method and trial.config.seed == trial.seed
+            assert trial.config.method.name == trial.method and trial.config.seed == trial.seed
             for key, value in trial.params:
-                assert replace_path(trial.config, key, value) == trial.config
+                assert get_setting(trial.config, key) == value
 
 
 @pytest.mark.parametrize(
     ("name", "key", "values", "flags"),
     [
-        ("ks_scheme_hour", "dyna.rollout_length", (25, 50), "--dyna.rollout-length {v}"),
-        ("ks_scheme_hour_reset", "dyna.reset_start_fraction", (0.5,), "--dyna.rollout-length 25 --dyna.reset-start-fraction {v}"),
+        ("ks_scheme_hour", "imagine.rollout_length", (25, 50), "--imagine.rollout-length {v}"),
+        (
+            "ks_scheme_hour_reset",
+            "imagine.reset_start_fraction",
+            (0.5,),
+            "--imagine.rollout-length 25 --imagine.reset-start-fraction {v}",
+        ),
     ],
 )
 def test_ks_hour_sweeps_run_the_documented_commands(tmp_path, name: str, key: str, values: tuple, flags: str) -> None:
@@ -223,30 +235,32 @@ def test_ks_hour_sweeps_run_the_documented_commands(tmp_path, name: str, key: st
     trials = plan_trials(load_sweep(path), tmp_path)
     assert sorted((t.seed, dict(t.params)[key]) for t in trials) == [(s, v) for s in range(4) for v in values]
     for trial in trials:
-        argv = "ks --method mbrl --dyna.model physics --total-steps 60000 --utd 10 --warmup-steps 1000"
-        argv += " --update-after 1000 --dyna.start-model-after 1000 --eval-every 2500 --dyna.finetune-return none"
+        argv = "ks --method known-scheme --total-steps 60000 --utd 10 --warmup-steps 1000"
+        argv += " --update-after 1000 --model.start-after 1000 --eval-every 2500 --finetune.at-return none"
         argv += " " + flags.format(v=dict(trial.params)[key]) + f" --agent.gamma 0.99 --threads 1 --seed {trial.seed}"
         assert trial.config == config_from_argv(argv.split())
 
 
 # ---------------------------------------------------------------------------------- compare
 def test_compare_applies_overrides_to_the_runs_they_fit(tmp_path) -> None:
-    specs = plan_runs(PENDULUM, ["mfrl", "pimbrl", "mfrl-matched"], [0], tmp_path, {"dyna.model_steps": 5})
+    specs = plan_runs(PENDULUM, ["mfrl", "pimbrl", "mfrl-matched"], [0], tmp_path, {"fit.steps": 5})
     cfg = {s.label: s.config for s in specs}
-    assert cfg["pimbrl"].dyna.model_steps == 5 and cfg["mfrl"].dyna.model_steps == 50
+    assert cfg["pimbrl"].method.fit.steps == 5 and cfg["mfrl"].method == MFRL()
     assert cfg["mfrl-matched"].utd == resolve_config(PENDULUM, {"method": "pimbrl"}).utd and cfg["mfrl"].utd == 1.0
     assert plan_runs(PENDULUM, ["mfrl-matched"], [0], tmp_path, {"utd": 2.0})[0].config.utd == 2.0  # the user's wins
     assert plan_runs(PENDULUM, ["mfrl"], [3], tmp_path, ["--steps", "300"])[0].config.total_steps == 300  # flags still read
-    with pytest.raises(ConfigError, match=r"--dyna\.model-steps applies to the model-based methods mbrl and pimbrl, not mfrl"):
-        plan_runs(PENDULUM, ["mfrl", "mfrl-matched"], [0], tmp_path, {"dyna.model_steps": 5})
+    with pytest.raises(
+        ConfigError, match=r"--fit\.steps is a setting of --method mbrl, pimbrl, identified-scheme, hybrid, pihybrid, not mfrl"
+    ):
+        plan_runs(PENDULUM, ["mfrl", "mfrl-matched"], [0], tmp_path, {"fit.steps": 5})
     with pytest.raises(ConfigError, match="compare sets seed itself"):
         plan_runs(PENDULUM, ["mfrl"], [0], tmp_path, {"seed": 3})
 
 
 def test_compare_cli_rejects_an_extra_flag_that_fits_no_method(tmp_path, capsys) -> None:
     args = ["compare", "pendulum", "--methods", "mfrl", "--seeds", "1", "--run-dir", str(tmp_path / "c")]
-    assert main([*args, "--", "--dyna.model-steps", "5"]) == 2
-    assert "--dyna.model-steps applies to the model-based methods" in capsys.readouterr().err
+    assert main([*args, "--", "--fit.steps", "5"]) == 2
+    assert "--fit.steps is a setting of --method mbrl, pimbrl" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
 
 
@@ -261,7 +275,7 @@ def test_compare_launches_children_with_a_config_file(tmp_path) -> None:
     recorded = json.loads((run / "config.json").read_text())
     assert recorded["status"] == "finished"
     planned = plan_runs(PENDULUM, ["mfrl"], [0], root, TINY_RUN)[0].config
-    assert request == recorded["config"] == json.loads(json.dumps(to_dict(planned)))
+    assert request == recorded["config"] == json.loads(json.dumps(config_to_dict(planned)))
     assert config_from_dict(request) == planned
     assert "--config" in recorded["command"] and f"--config {run / REQUEST_FILE}" in lines[0]
 

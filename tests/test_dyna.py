@@ -10,32 +10,39 @@ import torch
 
 from pimbrl.cli import main
 from pimbrl.training import Run, RunDirectory, create_run, resolve_config, train
+from pimbrl.training.config import has_setting
 
 from .conftest import SMALL_POOL
 from .test_training import POOL, TINY, _table, kill_when
 
-SMALL_MODEL = ["--dyna.model-batch-size", "32", "--dyna.rollouts", "16", "--dyna.validation-size", "64"]
+SMALL_MODEL = ["--fit.batch-size", "32", "--imagine.rollouts", "16", "--check.validation-size", "64"]
 DYNA_SMOKE = {
     "ks": ["--steps", "60", "--warmup-steps", "20", "--update-after", "20", "--update-every", "20", "--eval-every", "60",
-           "--eval-episodes", "2", "--env-kwargs", POOL, "--dyna.start-model-after", "20", "--dyna.start-physics-after", "30",
-           "--dyna.model-steps", "2", "--dyna.threshold", "1e3"],
+           "--eval-episodes", "2", "--env-kwargs", POOL, "--model.start-after", "20", "--physics.start-after", "30",
+           "--fit.steps", "2", "--check.threshold", "1e3"],
     "burgers": ["--steps", "180", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "60", "--eval-episodes", "3",
-                "--dyna.start-model-after", "60", "--dyna.start-physics-after", "60", "--dyna.model-steps", "3", "--dyna.threshold", "1e3"],
+                "--model.start-after", "60", "--physics.start-after", "60", "--fit.steps", "3", "--check.threshold", "1e3"],
     "cartpole": ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "3",
-                 "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
-                 "--dyna.threshold", "1e3", "--dyna.rollout-length", "20"],
+                 "--model.start-after", "100", "--physics.start-after", "150", "--fit.steps", "5",
+                 "--check.threshold", "1e3", "--imagine.rollout-length", "20"],
     "pendulum": ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "3",
-                 "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
-                 "--dyna.threshold", "1e3", "--dyna.rollout-length", "20"],
+                 "--model.start-after", "100", "--physics.start-after", "150", "--fit.steps", "5",
+                 "--check.threshold", "1e3", "--imagine.rollout-length", "20"],
 }  # fmt: skip
 
 
 def _for_method(args: list[str], method: str) -> list[str]:
-    """``args`` without the physics-loss flag for mbrl (which has no physics loss: the flag is an error)."""
-    if method == "pimbrl" or "--dyna.start-physics-after" not in args:
-        return list(args)
-    i = args.index("--dyna.start-physics-after")
-    return args[:i] + args[i + 2 :]
+    """``args`` without the settings ``method`` does not have (mbrl: no physics loss; the flag would be an error)."""
+    out: list[str] = []
+    for i, arg in enumerate(args):
+        if i and out[-1:] == [None]:  # the value of a dropped flag
+            out[-1] = "dropped"
+            continue
+        if arg.startswith("--") and "." in arg and not has_setting(method, "td3", arg[2:].replace("-", "_")):
+            out.append(None)  # type: ignore[arg-type]
+            continue
+        out.append(arg)
+    return [a for a in out if a not in (None, "dropped")]
 
 
 @pytest.mark.parametrize("method", ["mbrl", "pimbrl"])
@@ -45,7 +52,7 @@ def test_model_based_methods_run_on_every_env(env: str, method: str, tmp_path) -
     smoke = _for_method(DYNA_SMOKE[env], method)
     assert main(["train", env, "--method", method, "--run-dir", str(run), *smoke, *TINY, *SMALL_MODEL]) == 0
     payload = json.loads((run / "config.json").read_text())
-    assert payload["status"] == "finished" and payload["config"]["method"] == method
+    assert payload["status"] == "finished" and payload["config"]["method"]["name"] == method
     metrics = RunDirectory(run).metrics([]).read()
     last = metrics[-1]
     assert float(last["model/data_loss"]) >= 0 and last["model/in_use"] == "1"
@@ -100,12 +107,26 @@ def _record(cfg, path) -> tuple[Recorder, Run]:
 def test_phases_start_in_the_configured_order(tmp_path) -> None:
     cfg = resolve_config(
         "pimbrl/Pendulum-v0",
-        {"method": "pimbrl", "total_steps": 600, "warmup_steps": 50, "update_after": 100, "update_every": 50,
-         "eval_every": 600, "eval_episodes": 2},
-        {"hidden": (16, 16), "batch_size": 16},
-        {"start_model_after": 200, "start_physics_after": 400, "model_steps": 2, "model_batch_size": 16,
-         "rollouts": 8, "rollout_length": 5, "threshold": 1e3, "validation_size": 32},
-    )  # fmt: skip
+        {
+            "method": "pimbrl",
+            "total_steps": 600,
+            "warmup_steps": 50,
+            "update_after": 100,
+            "update_every": 50,
+            "eval_every": 600,
+            "eval_episodes": 2,
+            "agent.hidden": (16, 16),
+            "agent.batch_size": 16,
+            "model.start_after": 200,
+            "physics.start_after": 400,
+            "fit.steps": 2,
+            "fit.batch_size": 16,
+            "imagine.rollouts": 8,
+            "imagine.rollout_length": 5,
+            "check.threshold": 1e3,
+            "check.validation_size": 32,
+        },
+    )
     recorder, _ = _record(cfg, tmp_path / "run")
     log = recorder.log
     assert log[0]["t"] == 100  # update_after
@@ -118,10 +139,22 @@ def test_phases_start_in_the_configured_order(tmp_path) -> None:
     # a model that never meets lambda is never used: MBRL then equals MFRL in what the agent sees
     strict = resolve_config(
         "pimbrl/Pendulum-v0",
-        {"method": "mbrl", "total_steps": 300, "warmup_steps": 50, "update_after": 100, "eval_every": 300, "eval_episodes": 2},
-        {"hidden": (16, 16), "batch_size": 16},
-        {"start_model_after": 100, "model_steps": 1, "model_batch_size": 16, "threshold": 1e-12, "validation_size": 32},
-    )  # fmt: skip
+        {
+            "method": "mbrl",
+            "total_steps": 300,
+            "warmup_steps": 50,
+            "update_after": 100,
+            "eval_every": 300,
+            "eval_episodes": 2,
+            "agent.hidden": (16, 16),
+            "agent.batch_size": 16,
+            "model.start_after": 100,
+            "fit.steps": 1,
+            "fit.batch_size": 16,
+            "check.threshold": 1e-12,
+            "check.validation_size": 32,
+        },
+    )
     r2, run2 = _record(strict, tmp_path / "strict")
     assert not any(e["in_use"] for e in r2.log) and run2.model.imagined_total == 0
 
@@ -129,11 +162,25 @@ def test_phases_start_in_the_configured_order(tmp_path) -> None:
 def test_finetune_switch_stops_the_model(tmp_path) -> None:
     cfg = resolve_config(
         "pimbrl/Pendulum-v0",
-        {"method": "pimbrl", "total_steps": 400, "warmup_steps": 50, "update_after": 100, "eval_every": 400, "eval_episodes": 2},
-        {"hidden": (16, 16), "batch_size": 16},
-        {"start_model_after": 100, "start_physics_after": 100, "model_steps": 1, "model_batch_size": 16,
-         "rollouts": 4, "threshold": 1e3, "validation_size": 32, "finetune_after": 250},
-    )  # fmt: skip
+        {
+            "method": "pimbrl",
+            "total_steps": 400,
+            "warmup_steps": 50,
+            "update_after": 100,
+            "eval_every": 400,
+            "eval_episodes": 2,
+            "agent.hidden": (16, 16),
+            "agent.batch_size": 16,
+            "model.start_after": 100,
+            "physics.start_after": 100,
+            "fit.steps": 1,
+            "fit.batch_size": 16,
+            "imagine.rollouts": 4,
+            "check.threshold": 1e3,
+            "check.validation_size": 32,
+            "finetune.after": 250,
+        },
+    )
     recorder, _ = _record(cfg, tmp_path / "run")
     assert all(e["in_use"] for e in recorder.log if e["t"] < 250)
     assert not any(e["in_use"] or e["model_trained"] for e in recorder.log if e["t"] >= 250)
@@ -142,8 +189,8 @@ def test_finetune_switch_stops_the_model(tmp_path) -> None:
 RESUME_DYNA = [
     "cartpole", "--method", "pimbrl", "--steps", "800", "--warmup-steps", "100", "--update-after", "100",
     "--eval-every", "200", "--eval-episodes", "4", "--checkpoint-every", "100", "--log-every", "100",
-    "--dyna.start-model-after", "100", "--dyna.start-physics-after", "150", "--dyna.model-steps", "5",
-    "--dyna.threshold", "1e3", "--dyna.rollout-length", "30", "--dyna.select-episodes", "3", *TINY, *SMALL_MODEL,
+    "--model.start-after", "100", "--physics.start-after", "150", "--fit.steps", "5",
+    "--check.threshold", "1e3", "--imagine.rollout-length", "30", "--imagine.select-episodes", "3", *TINY, *SMALL_MODEL,
 ]  # fmt: skip
 
 
@@ -180,8 +227,8 @@ def test_compare_runs_methods_and_skips_finished_runs(tmp_path, capsys) -> None:
         "150",
     ]
     extra = ["--", "--warmup-steps", "50", "--update-after", "50", "--eval-every", "100", "--eval-episodes", "3",
-             "--dyna.start-model-after", "50", "--dyna.start-physics-after", "80", "--dyna.model-steps", "2",
-             "--dyna.rollout-length", "10", *TINY, *SMALL_MODEL]  # fmt: skip
+             "--model.start-after", "50", "--physics.start-after", "80", "--fit.steps", "2",
+             "--imagine.rollout-length", "10", *TINY, *SMALL_MODEL]  # fmt: skip
     assert main([*args[:-2], "--jobs", "2", *args[-2:], *extra]) == 0
     out = capsys.readouterr().out
     assert "steps ratio pimbrl/mfrl" in out
@@ -277,12 +324,12 @@ def test_the_median_steps_to_threshold_is_measured_when_the_middle_runs_reached_
 
 @pytest.mark.parametrize("fraction", [0.0, 1.0])
 def test_reset_starts_imagine_episodes_from_the_training_pool(tmp_path, ks_small_pools, fraction: float) -> None:
-    """``dyna.reset_start_fraction`` 1: every imagined rollout starts at step 0 from a training-pool state
+    """``imagine.reset_start_fraction`` 1: every imagined rollout starts at step 0 from a training-pool state
     (never a test-pool one); 0: from the real buffer's states, which lie later in their episodes."""
     from pimbrl.training.cli_args import config_from_argv
 
-    argv = ["ks", "--method", "mbrl", "--dyna.model", "physics", *_for_method(DYNA_SMOKE["ks"], "mbrl"), *TINY,
-            *SMALL_MODEL, "--dyna.reset-start-fraction", str(fraction)]  # fmt: skip
+    argv = ["ks", "--method", "known-scheme", *_for_method([*DYNA_SMOKE["ks"], *TINY, *SMALL_MODEL], "known-scheme"),
+            "--imagine.reset-start-fraction", str(fraction)]  # fmt: skip
     run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
     train(run)
     model = run.model
@@ -309,11 +356,24 @@ def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) ->
     """3 rollouts, half continued and half from resets: each share rounds to 2, yet 3 rollouts start."""
     cfg = resolve_config(
         "pimbrl/Pendulum-v0",
-        {"method": "mbrl", "total_steps": 300, "warmup_steps": 50, "update_after": 100, "eval_every": 300, "eval_episodes": 2},
-        {"hidden": (16, 16), "batch_size": 16},
-        {"model": "physics", "start_model_after": 100, "rollouts": 3, "rollout_length": 2, "threshold": 1e3,
-         "validation_size": 32, "imagined_start_fraction": 0.5, "reset_start_fraction": 0.5},
-    )  # fmt: skip
+        {
+            "method": "known-scheme",
+            "total_steps": 300,
+            "warmup_steps": 50,
+            "update_after": 100,
+            "eval_every": 300,
+            "eval_episodes": 2,
+            "agent.hidden": (16, 16),
+            "agent.batch_size": 16,
+            "model.start_after": 100,
+            "imagine.rollouts": 3,
+            "imagine.rollout_length": 2,
+            "check.threshold": 1e3,
+            "check.validation_size": 32,
+            "imagine.imagined_start_fraction": 0.5,
+            "imagine.reset_start_fraction": 0.5,
+        },
+    )
     run = create_run(cfg, tmp_path / "run", progress=False)
     train(run)
     assert run.model is not None
@@ -322,12 +382,12 @@ def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) ->
 
 
 def test_symmetric_reset_starts_are_images_of_training_states(tmp_path, ks_small_pools) -> None:
-    """``dyna.reset_start_symmetry``: each fresh imagined episode starts from a training-pool state shifted
+    """``experimental.reset_start_symmetry``: each fresh imagined episode starts from a training-pool state shifted
     and possibly reflected (``u(x) -> -u(-x)``), mostly not a pool state itself, never a test-pool state."""
     from pimbrl.training.cli_args import config_from_argv
 
-    argv = ["ks", "--method", "mbrl", "--dyna.model", "physics", *_for_method(DYNA_SMOKE["ks"], "mbrl"), *TINY,
-            *SMALL_MODEL, "--dyna.reset-start-fraction", "1", "--dyna.reset-start-symmetry", "true"]  # fmt: skip
+    argv = ["ks", "--method", "known-scheme", *_for_method([*DYNA_SMOKE["ks"], *TINY, *SMALL_MODEL], "known-scheme"),
+            "--imagine.reset-start-fraction", "1", "--experimental.reset-start-symmetry", "true"]  # fmt: skip
     run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
     train(run)
     model = run.model

@@ -99,13 +99,13 @@ def test_pimbrl_learns_the_prior_s_wrong_coefficient_from_the_simulator(oscillat
     run = tmp_path / "run"
     flags = ["--steps", "400", "--warmup-steps", "80", "--update-after", "80", "--eval-every", "200", "--eval-episodes", "2"]
     flags += [
-        "--dyna.start-model-after",
+        "--model.start-after",
         "80",
-        "--dyna.start-physics-after",
+        "--physics.start-after",
         "80",
-        "--dyna.learn-coefficients",
+        "--learn.coefficients",
         "c",
-        "--dyna.coefficient-lr",
+        "--learn.lr",
         "0.05",
     ]
     assert main(["train", "ext-osc", "--method", "pimbrl", *flags, "--run-dir", str(run), *TINY]) == 0

@@ -12,10 +12,10 @@ from pimbrl.cli import main
 from pimbrl.config import ConfigError
 from pimbrl.models import HybridModel, ModelTrainer, PhysicsModel, PhysicsResidual, TransitionData, make_model
 from pimbrl.systems import Burgers, KuramotoSivashinsky, Pendulum
-from pimbrl.training import RunDirectory, create_run, resolve_config, train
+from pimbrl.training import RunDirectory, create_run, train
 from pimbrl.training.cli_args import config_from_argv
 
-from .test_dyna import DYNA_SMOKE, SMALL_MODEL
+from .test_dyna import DYNA_SMOKE, SMALL_MODEL, _for_method
 from .test_training import TINY
 
 
@@ -160,31 +160,30 @@ def test_unknown_model_kind_and_bad_scale_are_refused() -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["cartpole", "--method", "mbrl", "--dyna.model", "equivariant"], "network on a PDE's grid"),
+        (["cartpole", "--method", "mbrl", "--model.network", "equivariant"], "network on a PDE's grid"),
         (
-            ["burgers", "--method", "mbrl", "--dyna.model", "physics", "--dyna.correction-scale", "0.1"],
-            "give --dyna.model hybrid",
+            ["burgers", "--method", "known-scheme", "--model.correction-scale", "0.1"],
+            "--model.correction-scale is a setting of --method hybrid, pihybrid, not known-scheme",
         ),
     ],
 )
 def test_model_kind_settings_that_cannot_work_are_refused(argv: list[str], message: str) -> None:
     with pytest.raises(ConfigError, match=message):
-        resolve_config(config_from_argv(argv))
+        config_from_argv(argv)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("env", "kind"), [("burgers", "physics"), ("burgers", "hybrid"), ("pendulum", "hybrid")])
 def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str, kind: str, tmp_path) -> None:
-    smoke = [a for a in DYNA_SMOKE[env]]
-    i = smoke.index("--dyna.start-physics-after")
-    smoke = smoke[:i] + smoke[i + 2 :]  # mbrl: no physics loss
+    method = "known-scheme" if kind == "physics" else "hybrid"
+    smoke = _for_method(DYNA_SMOKE[env], method)  # no physics loss (nor, for the known scheme, a fit)
     if env == "pendulum":  # end on an episode boundary (200 steps), where a resumed run extends exactly
         smoke[smoke.index("--steps") + 1] = "200"
-    argv = [env, *smoke, *TINY, *SMALL_MODEL, "--method", "mbrl", "--dyna.model", kind, "--checkpoint-every", "60"]
+    argv = [env, *smoke, *TINY, *_for_method(SMALL_MODEL, method), "--method", method, "--checkpoint-every", "60"]
     run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
     train(run)
     rows = RunDirectory(tmp_path / "run").metrics([]).read()
-    assert all(r["model/in_use"] == "1" for r in rows if int(r["step"]) > int(smoke[smoke.index("--dyna.start-model-after") + 1]))
+    assert all(r["model/in_use"] == "1" for r in rows if int(r["step"]) > int(smoke[smoke.index("--model.start-after") + 1]))
     assert int(rows[-1]["imagined_total"]) > 0
     assert ("model/data_loss" in rows[-1] and rows[-1]["model/data_loss"] != "") == (kind == "hybrid")
     # a longer budget continues from the checkpoint (the physics model has no optimiser state) exactly as
@@ -206,9 +205,10 @@ def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str,
 @pytest.mark.parametrize("kind", ["physics", "hybrid"])
 def test_a_pimbrl_runs_physics_model_steps_the_learned_coefficients(kind: str, tmp_path) -> None:
     """The model steps the run's own residual, so it predicts with the coefficients the labels identified."""
-    argv = ["burgers", *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl", "--dyna.model", kind,
-            "--env-kwargs", json.dumps({"nu": 0.013}), "--dyna.physics-prior", "nu=0.01",
-            "--dyna.learn-coefficients", "nu", "--dyna.coefficient-lr", "0.05"]  # fmt: skip
+    method = "identified-scheme" if kind == "physics" else "pihybrid"
+    argv = ["burgers", *_for_method([*DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL], method), "--method", method,
+            "--env-kwargs", json.dumps({"nu": 0.013}), "--model.prior", "nu=0.01",
+            "--learn.coefficients", "nu", "--learn.lr", "0.05"]  # fmt: skip
     run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
     train(run)
     assert run.model is not None

@@ -15,6 +15,7 @@ from pimbrl.models import ModelTrainer, PhysicsResidual, make_model
 from pimbrl.models.coefficients import LearnedCoefficients
 from pimbrl.systems import Burgers, CartPole, KuramotoSivashinsky, Pendulum, ks_initial_state_pool
 from pimbrl.training import RunDirectory, resolve_config
+from pimbrl.training.cli_args import config_from_argv
 
 from .test_dyna import DYNA_SMOKE, SMALL_MODEL
 from .test_training import TINY
@@ -133,23 +134,19 @@ def test_trainer_fits_coefficients_on_labelled_batches_and_checkpoints_them() ->
 
 
 def test_configuration_errors_name_the_problem() -> None:
-    ok = resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu"})
-    assert ok.dyna.learn_coefficients == "nu"
+    ok = resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "learn.coefficients": {"nu": None}})
+    assert ok.method.learn.coefficients == {"nu": None} and ok.method.learn.ranges() == {"nu": None}
     with pytest.raises(ConfigError, match=r"has no coefficient 'nuu' \(did you mean 'nu'\?\)"):
-        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nuu"})
-    with pytest.raises(ConfigError, match=r"dyna.physics_prior: pimbrl/Burgers-v0 has no coefficient 'm'"):
-        resolve_config("pimbrl/Burgers-v0", {"method": "mbrl", "dyna.physics_prior": "m=1"})
-    with pytest.raises(ConfigError, match="needs the etd residual"):
-        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu", "dyna.residual": "solver"})
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "learn.coefficients": {"nuu": None}})
+    with pytest.raises(ConfigError, match=r"model.prior: pimbrl/Burgers-v0 has no coefficient 'm'"):
+        resolve_config("pimbrl/Burgers-v0", {"method": "mbrl", "model.prior": {"m": 1.0}})
+    with pytest.raises(ConfigError, match="needs the etd scheme"):
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "learn.coefficients": {"nu": None}, "model.scheme": "solver"})
 
 
 def test_learned_coefficient_flags_are_refused_where_they_do_nothing(tmp_path) -> None:
-    assert (
-        main(["train", "burgers", "--method", "mbrl", "--dyna.learn-coefficients", "nu", "--run-dir", str(tmp_path / "a")]) == 2
-    )
-    assert (
-        main(["train", "pendulum", "--method", "mbrl", "--dyna.learn-coefficients", "m", "--run-dir", str(tmp_path / "b")]) == 2
-    )
+    assert main(["train", "burgers", "--method", "mbrl", "--learn.coefficients", "nu", "--run-dir", str(tmp_path / "a")]) == 2
+    assert main(["train", "pendulum", "--method", "mbrl", "--learn.coefficients", "m", "--run-dir", str(tmp_path / "b")]) == 2
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
@@ -158,8 +155,8 @@ def _train_with_wrong_prior(run, env: str, true: dict, prior: str, learn: str) -
     ``learn``; returns its ``coefficients.json``."""
     args = [
         "train", env, "--method", "pimbrl", "--run-dir", str(run), *DYNA_SMOKE[env], *TINY, *SMALL_MODEL,
-        "--env-kwargs", json.dumps(true), "--dyna.physics-prior", prior, "--dyna.learn-coefficients", learn,
-        "--dyna.coefficient-lr", "0.05",
+        "--env-kwargs", json.dumps(true), "--model.prior", prior, "--learn.coefficients", learn,
+        "--learn.lr", "0.05",
     ]  # fmt: skip
     assert main(args) == 0
     return json.loads((run / "coefficients.json").read_text())
@@ -202,16 +199,16 @@ def test_the_correction_finds_a_term_of_a_form_the_prior_lacks_and_stays_small_w
 
 
 def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
-    assert resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.learn_coefficients": "nu,correction"})
-    with pytest.raises(
-        ConfigError,
-        match=r"correction is a linear operator on a PDE's grid .*, not for pimbrl/CartPole-v0; name the coefficients",
-    ):
-        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "correction"})
+    assert resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "learn.coefficients": {"nu": None}, "learn.correction": True})
+    with pytest.raises(ConfigError, match=r"--learn.correction applies to the PDE systems .*, not pimbrl/CartPole-v0"):
+        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "learn.correction": True})
     with pytest.raises(ConfigError, match="correction-penalty applies to the PDE systems"):
         resolve_config(
-            "pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "masspole", "dyna.correction_penalty": 1.0}
+            "pimbrl/CartPole-v0",
+            {"method": "pimbrl", "learn.coefficients": {"masspole": None}, "learn.correction_penalty": 1.0},
         )
+    # on the command line, 'correction' among the names is the switch
+    assert config_from_argv(["burgers", "--method", "pimbrl", "--learn.coefficients", "nu,correction"]).method.learn.correction
     with pytest.raises(ValueError, match="takes no range"):
         LearnedCoefficients(Burgers(), {"correction": (0.0, 1.0)})
 
@@ -219,12 +216,13 @@ def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
 @pytest.mark.parametrize(
     ("fields", "message"),
     [
-        ({"env_kwargs": {"nu": 0.013}, "dyna.learn_coefficients": "nu"}, "nu would start from the environment's true value"),
-        ({"dyna.coefficient_lr": 0.05}, "--dyna.coefficient-lr does nothing without --dyna.learn-coefficients"),
-        ({"dyna.learn_coefficients": "nu", "dyna.correction_penalty": 1.0}, "does nothing without 'correction'"),
-        ({"dyna.learn_coefficients": "nu,nu:0:1"}, "nu is given twice"),
-        ({"dyna.physics_prior": "nu=-1"}, re.escape("physics prior: burgers: nu must be a finite number in [0, 1], got -1.0")),
-        ({"dyna.physics_prior": "damping=0.5", "dyna.learn_coefficients": "damping:0:0.1"}, "lies outside its range"),
+        ({"env_kwargs": {"nu": 0.013}, "learn.coefficients": {"nu": None}}, "nu would start from the environment's true value"),
+        ({"learn.lr": 0.05}, "--learn.lr does nothing without --learn.coefficients"),
+        ({"learn.coefficients": {"nu": None}, "learn.correction_penalty": 1.0}, "does nothing without --learn.correction true"),
+        ({"learn.coefficients": {"nu": [0.1, 0.0]}}, re.escape("must be a mapping of coefficient names to null or [low, high]")),
+        ({"model.prior": {"nu": -1}}, re.escape("physics prior: burgers: nu must be a finite number in [0, 1], got -1.0")),
+        ({"model.prior": {"damping": 0.5}, "learn.coefficients": {"damping": [0, 0.1]}}, "lies outside its range"),
+        ({"model.prior": "nu=0.01"}, re.escape('model.prior takes a mapping, e.g. {"nu": 0.01}')),
     ],
 )
 def test_every_coefficient_problem_is_refused_before_anything_runs(fields: dict, message: str) -> None:
@@ -245,7 +243,7 @@ def test_a_run_with_learned_coefficients_continues_bit_for_bit(tmp_path) -> None
     """Trained to an episode boundary, then extended: the same files and coefficients as one longer run."""
     args = [
         *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl",
-        "--env-kwargs", '{"nu": 0.013}', "--dyna.physics-prior", "nu=0.01", "--dyna.learn-coefficients", "nu,correction",
+        "--env-kwargs", '{"nu": 0.013}', "--model.prior", "nu=0.01", "--learn.coefficients", "nu,correction",
     ]  # fmt: skip
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert main(["train", "burgers", "--run-dir", str(whole), *args]) == 0  # 180 steps: 3 episodes
@@ -331,7 +329,7 @@ def test_a_free_coefficient_from_zero_that_cannot_be_negative_needs_a_range() ->
     with pytest.raises(ValueError, match=r"its prior is 0 and pendulum refuses negative values.*e\.g\. damping:0:1"):
         LearnedCoefficients(Pendulum(), {"damping": None})
     with pytest.raises(ConfigError, match=r"give it a range, e\.g\. pole_friction:0:1"):
-        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.learn_coefficients": "pole_friction"})
+        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "learn.coefficients": {"pole_friction": None}})
     assert LearnedCoefficients(Pendulum(), {"damping": (0.0, 1.0)}).current() == {"damping": 0.0}
     # a coefficient that may be negative (a drift) is learned free from 0
     assert LearnedCoefficients(Burgers(), {"drift": None}).current() == {"drift": 0.0}
@@ -395,7 +393,7 @@ def _ks_dyna(tmp_path, name: str):
     pool = json.loads(POOL)
     argv = [
         "ks", "--method", "pimbrl", "--env-kwargs", json.dumps({**pool, "actuator_width": 1.3}),
-        "--eval-episodes", "2", "--dyna.physics-prior", "actuator_width=1", "--dyna.learn-coefficients", "actuator_width", *TINY,
+        "--eval-episodes", "2", "--model.prior", "actuator_width=1", "--learn.coefficients", "actuator_width", *TINY,
     ]  # fmt: skip
     run = build_run(config_from_argv(argv), RunDirectory(tmp_path / name), progress=False)
     assert run.model is not None
@@ -444,9 +442,9 @@ def test_a_run_learning_the_width_feeds_it_to_the_model_and_the_imagined_steps(t
     from pimbrl.training.cli_args import config_from_argv
 
     argv = [
-        "burgers", *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl", "--dyna.model", "equivariant",
-        "--env-kwargs", json.dumps({"actuator_width": WIDTH_TRUE}), "--dyna.physics-prior", f"actuator_width={WIDTH_PRIOR}",
-        "--dyna.learn-coefficients", "actuator_width", "--dyna.coefficient-lr", "0.05",
+        "burgers", *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl", "--model.network", "equivariant",
+        "--env-kwargs", json.dumps({"actuator_width": WIDTH_TRUE}), "--model.prior", f"actuator_width={WIDTH_PRIOR}",
+        "--learn.coefficients", "actuator_width", "--learn.lr", "0.05",
     ]  # fmt: skip
     run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
     train(run)

@@ -7,15 +7,16 @@ import pytest
 
 from pimbrl.training import STREAM_KEYS, RandomStreams, Run, create_run, resolve_config, train
 
-SMALL_AGENT = {"hidden": (16, 16), "batch_size": 16}
+SMALL_AGENT = {"agent.hidden": (16, 16), "agent.batch_size": 16}
 
 
-def _pendulum(method: str, utd: float = 5.0, **dyna) -> object:
+def _pendulum(method: str, utd: float = 5.0, **model_settings) -> object:
     over = {"method": method, "utd": utd, "total_steps": 500, "warmup_steps": 100, "update_after": 100, "update_every": 50,
-            "eval_every": 250, "eval_episodes": 2, "checkpoint_every": 200}  # fmt: skip
-    model = {"start_model_after": 200, "start_physics_after": 200, "model_steps": 2, "model_batch_size": 16,
-             "rollouts": 8, "rollout_length": 5, "threshold": 1e3, "validation_size": 32, **dyna}  # fmt: skip
-    return resolve_config("pimbrl/Pendulum-v0", over, SMALL_AGENT, model if method != "mfrl" else None)
+            "eval_every": 250, "eval_episodes": 2, "checkpoint_every": 200, **SMALL_AGENT}  # fmt: skip
+    model = {"model.start_after": 200, "physics.start_after": 200, "fit.steps": 2, "fit.batch_size": 16,
+             "imagine.rollouts": 8, "imagine.rollout_length": 5, "check.threshold": 1e3, "check.validation_size": 32,
+             **model_settings}  # fmt: skip
+    return resolve_config("pimbrl/Pendulum-v0", {**over, **(model if method != "mfrl" else {})})
 
 
 def _run(cfg, path) -> tuple[list[tuple[str, int]], Run]:
@@ -47,23 +48,23 @@ def test_the_loop_runs_its_phases_in_the_order_of_algorithm_1(method: str, tmp_p
     # counters: the agent got update_every * utd updates per phase, the model its steps per phase
     assert run.agent.n_updates == len(update_steps) * cfg.update_every * cfg.utd
     if method == "pimbrl":
-        model_phases = [t for t in update_steps if t >= cfg.dyna.start_model_after]
-        assert run.model.trainer.steps == len(model_phases) * cfg.dyna.model_steps
+        model_phases = [t for t in update_steps if t >= cfg.method.start_after]
+        assert run.model.trainer.steps == len(model_phases) * cfg.method.fit.steps
 
 
 @pytest.mark.slow  # several seconds: the whole suite runs it, the fast tier does not
 def test_a_model_setting_changes_neither_the_holdout_split_nor_early_exploration(tmp_path) -> None:
-    """Changing --dyna.model-steps (or the rollouts) draws more or fewer numbers in the model phase; the hold-out
+    """Changing --fit.steps (or the rollouts) draws more or fewer numbers in the model phase; the hold-out
     flags of the real transitions, and everything the agent did in the real environment before the model
     was used, stay identical."""
-    _, a = _run(_pendulum("pimbrl", model_steps=1), tmp_path / "a")
-    _, b = _run(_pendulum("pimbrl", model_steps=4, rollouts=3), tmp_path / "b")
+    _, a = _run(_pendulum("pimbrl", **{"fit.steps": 1}), tmp_path / "a")
+    _, b = _run(_pendulum("pimbrl", **{"fit.steps": 4, "imagine.rollouts": 3}), tmp_path / "b")
     assert a.model.trainer.steps != b.model.trainer.steps
     n = len(a.real)
     flags_a, flags_b = a.real.extras["holdout"][:n], b.real.extras["holdout"][:n]
     assert 0 < float(flags_a.sum()) < n  # some held out, not all
     assert bool((flags_a == flags_b).all())
-    first_use = a.cfg.dyna.start_model_after  # the first model phase: its imagined data reaches the agent after it
+    first_use = a.cfg.method.start_after  # the first model phase: its imagined data reaches the agent after it
     assert bool((a.real.action[:first_use] == b.real.action[:first_use]).all())
     assert bool((a.real.obs[:first_use] == b.real.obs[:first_use]).all())
     assert not bool((a.real.action == b.real.action).all())  # afterwards the model does change what the agent does
@@ -74,7 +75,7 @@ def test_mfrl_and_pimbrl_explore_identically_until_the_model_is_used(tmp_path) -
     """Same seed and update budget: PiMBRL's agent is MFRL's until imagined data first reaches it."""
     _, mf = _run(_pendulum("mfrl"), tmp_path / "mf")
     _, pim = _run(_pendulum("pimbrl"), tmp_path / "pim")
-    first_use = pim.cfg.dyna.start_model_after
+    first_use = pim.cfg.method.start_after
     assert bool((mf.real.action[:first_use] == pim.real.action[:first_use]).all())
 
 

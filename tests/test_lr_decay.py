@@ -12,7 +12,7 @@ from pimbrl.training.loop import lr_scale
 from .test_training import RESUME_ARGS, _table, kill_when
 
 PENDULUM = {"total_steps": 600, "warmup_steps": 100, "update_after": 100, "eval_every": 100, "eval_episodes": 3, "log_every": 100}
-SMALL_AGENT = {"hidden": (16, 16), "batch_size": 16}
+SMALL_AGENT = {"agent.hidden": (16, 16), "agent.batch_size": 16}
 
 
 def test_the_scale_is_one_until_the_start_then_linear_to_the_final_fraction() -> None:
@@ -26,19 +26,19 @@ def test_the_scale_is_one_until_the_start_then_linear_to_the_final_fraction() ->
 @pytest.mark.parametrize(
     ("fields", "message"),
     [
-        ({"lr_decay_to": 0.5}, "give --lr-decay-after STEP too"),
-        ({"lr_decay_after": 600}, "is not before --total-steps 600"),
-        ({"lr_decay_after": 100, "lr_decay_to": 1.0}, "keeps the learning rates constant"),
-        ({"lr_decay_after": 100, "lr_decay_to": 1.5}, r"lr_decay_to must be in \[0.0, 1.0\]"),
+        ({"experimental.lr_decay_to": 0.5}, "give --experimental.lr-decay-after STEP too"),
+        ({"experimental.lr_decay_after": 600}, "is not before --total-steps 600"),
+        ({"experimental.lr_decay_after": 100, "experimental.lr_decay_to": 1.0}, "keeps the learning rates constant"),
+        ({"experimental.lr_decay_after": 100, "experimental.lr_decay_to": 1.5}, r"lr_decay_to must be in \[0.0, 1.0\]"),
     ],
 )
 def test_a_decay_that_cannot_happen_as_asked_is_refused(fields: dict, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
-        resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, **fields}, dict(SMALL_AGENT))
+        resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, **fields, **SMALL_AGENT})
 
 
 def _run(tmp_path, name: str, agent: str, **fields):
-    cfg = resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, "agent": agent, **fields}, dict(SMALL_AGENT))
+    cfg = resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, "agent": agent, **fields, **SMALL_AGENT})
     run = create_run(cfg, tmp_path / name, progress=False)
     train(run)
     return run
@@ -47,14 +47,14 @@ def _run(tmp_path, name: str, agent: str, **fields):
 @pytest.mark.parametrize("agent", ["td3", "sac"])
 def test_a_decaying_run_is_the_constant_run_until_the_decay_starts_and_ends_at_the_final_rates(tmp_path, agent) -> None:
     plain = _run(tmp_path, "plain", agent)
-    decay = _run(tmp_path, "decay", agent, lr_decay_after=300, lr_decay_to=0.25)
+    decay = _run(tmp_path, "decay", agent, **{"experimental.lr_decay_after": 300, "experimental.lr_decay_to": 0.25})
     drop = ("wall_s", "steps_per_s", "lr_scale")
     evals_plain = _table(plain.run_dir.path, "evaluations.csv", drop)
     evals_decay = _table(decay.run_dir.path, "evaluations.csv", drop)
     # the phases up to step 300 run at scale 1: the same run, bit for bit; after, the rates are lower
     assert evals_plain[:3] == evals_decay[:3]
     assert evals_plain[3:] != evals_decay[3:]
-    cfg = decay.cfg.agent_config
+    cfg = decay.cfg.agent
     assert decay.agent.actor_opt.param_groups[0]["lr"] == pytest.approx(0.25 * cfg.actor_lr)
     assert decay.agent.critic_opt.param_groups[0]["lr"] == pytest.approx(0.25 * cfg.critic_lr)
     assert plain.agent.actor_opt.param_groups[0]["lr"] == cfg.actor_lr
@@ -67,7 +67,7 @@ def test_a_decaying_run_is_the_constant_run_until_the_decay_starts_and_ends_at_t
 
 @pytest.mark.slow
 def test_kill_and_resume_of_a_decaying_run_equals_the_uninterrupted_one(tmp_path) -> None:
-    args = [*RESUME_ARGS, "--lr-decay-after", "600", "--lr-decay-to", "0.2"]
+    args = [*RESUME_ARGS, "--experimental.lr-decay-after", "600", "--experimental.lr-decay-to", "0.2"]
     ref, killed = tmp_path / "ref", tmp_path / "killed"
     assert main(["train", *args, "--run-dir", str(ref)]) == 0
 

@@ -17,14 +17,14 @@ from pimbrl.training import RunDirectory
 from .test_training import TINY
 
 FLAGS = ["--steps", "600", "--warmup-steps", "200", "--update-after", "200", "--eval-every", "300", "--eval-episodes", "2"]
-FLAGS += ["--dyna.start-model-after", "200", "--dyna.rollout-length", "5", "--dyna.threshold", "1.0", "--checkpoint-every", "200"]
+FLAGS += ["--model.start-after", "200", "--imagine.rollout-length", "5", "--check.threshold", "1.0", "--checkpoint-every", "200"]
 
 
 def test_mbrl_runs_on_gymnasium_s_own_pendulum_with_a_learned_reward(tmp_path) -> None:
     run = tmp_path / "run"
     assert main(["train", "Pendulum-v1", "--method", "mbrl", *FLAGS, "--run-dir", str(run), *TINY]) == 0
     payload = json.loads((run / "config.json").read_text())
-    assert payload["config"]["dyna"]["model"] == "mlp" and payload["system"]["origin"] == "gymnasium"
+    assert payload["config"]["method"]["network"] == "mlp" and payload["system"]["origin"] == "gymnasium"
     lines = (run / "metrics.csv").read_text().splitlines()
     header = lines[0].split(",")
     last = dict(zip(header, lines[-1].split(",")))
@@ -66,8 +66,8 @@ def test_a_data_only_run_resumes_as_if_uninterrupted(tmp_path) -> None:
     [
         (["Pendulum-v1", "--method", "pimbrl"], "pimbrl needs the system's equation, and Pendulum-v1 declares none"),
         (["CartPole-v1", "--method", "mbrl"], "CartPole-v1: data-only MBRL needs a 1-D Box action space"),
-        (["Pendulum-v1", "--method", "mbrl", "--dyna.model", "physics"], "--dyna.model physics needs the system's equation"),
-        (["Pendulum-v1", "--method", "mbrl", "--dyna.select-episodes", "3"], "--dyna.select-episodes needs initial states"),
+        (["Pendulum-v1", "--method", "known-scheme"], "--method known-scheme needs the system's equation"),
+        (["Pendulum-v1", "--method", "mbrl", "--imagine.select-episodes", "3"], "--imagine.select-episodes needs initial states"),
     ],
 )
 def test_what_a_data_only_run_cannot_do_is_a_one_line_error(argv, message, tmp_path, capsys) -> None:

@@ -11,7 +11,7 @@ import torch
 from pimbrl.cli import main
 from pimbrl.config import ConfigError
 from pimbrl.models import EquivariantConvModel, MLPModel, ModelEnv, PhysicsResidual, make_model
-from pimbrl.models.state_sources import available_sources, broad_actions, broad_states, parse_sources
+from pimbrl.models.state_sources import available_sources, broad_actions, broad_states, choose_sources
 from pimbrl.spaces import ActionAdapter
 from pimbrl.systems import BurgersTask, CartPole, KuramotoSivashinsky, Pendulum
 from pimbrl.training import create_run, resolve_config, train
@@ -22,10 +22,10 @@ def test_sources_exist_where_the_physics_declares_them() -> None:
     assert {"symmetry", "scaled", "noise"} <= set(available_sources(KuramotoSivashinsky()))
     assert "box" not in available_sources(KuramotoSivashinsky())
     with pytest.raises(ValueError, match="not available for"):
-        parse_sources("policy,box", KuramotoSivashinsky())
-    assert parse_sources("policy, symmetry", KuramotoSivashinsky()) == ("policy", "symmetry")
-    assert parse_sources("auto", KuramotoSivashinsky()) == ("policy", "imagined", "symmetry", "scaled", "noise")
-    assert parse_sources("auto", Pendulum()) == ("policy", "imagined", "box")
+        choose_sources(("policy", "box"), KuramotoSivashinsky())
+    assert choose_sources(("policy", "symmetry"), KuramotoSivashinsky()) == ("policy", "symmetry")
+    assert choose_sources((), KuramotoSivashinsky()) == ("policy", "imagined", "symmetry", "scaled", "noise")
+    assert choose_sources((), Pendulum()) == ("policy", "imagined", "box")
 
 
 def test_box_states_cover_the_admissible_box() -> None:
@@ -112,18 +112,19 @@ def test_the_endpoint_reward_rule_ignores_the_intermediate_states() -> None:
     np.testing.assert_allclose(out.reward, expected, rtol=1e-12)
 
 
-def _pendulum(method: str, **dyna) -> object:
+def _pendulum(method: str, **settings) -> object:
     over = {"method": method, "total_steps": 400, "warmup_steps": 100, "update_after": 100, "eval_every": 400,
-            "eval_episodes": 2}  # fmt: skip
-    model = {"model_batch_size": 16, "rollouts": 8, "rollout_length": 5, "validation_size": 32, "model_steps": 3, **dyna}
-    return resolve_config("pimbrl/Pendulum-v0", over, {"hidden": (16, 16), "batch_size": 16}, model)
+            "eval_episodes": 2, "agent.hidden": (16, 16), "agent.batch_size": 16}  # fmt: skip
+    model = {"fit.batch_size": 16, "imagine.rollouts": 8, "imagine.rollout_length": 5, "check.validation_size": 32,
+             "fit.steps": 3, **settings}  # fmt: skip
+    return resolve_config("pimbrl/Pendulum-v0", {**over, **model})
 
 
 def test_physics_only_training_before_labels_and_the_relative_gate(tmp_path) -> None:
     """PiMBRL with physics_start trains its model from the box states alone before start_model_after; the
     relative gate compares the held-out error with the no-change prediction's."""
-    cfg = _pendulum("pimbrl", physics_start=100, start_model_after=10**6, physics_sources="box", residual_units="step",
-                    accuracy="relative", relative_threshold=0.5)  # fmt: skip
+    cfg = _pendulum("pimbrl", **{"physics.alone_from": 100, "model.start_after": 10**6, "physics.sources": ("box",),
+                    "physics.units": "step", "check.accuracy": "relative", "check.relative_threshold": 0.5})  # fmt: skip
     run = create_run(cfg, tmp_path / "pim", progress=False)
     train(run)
     m = run.model
@@ -132,15 +133,15 @@ def test_physics_only_training_before_labels_and_the_relative_gate(tmp_path) -> 
     assert np.isfinite(m.val_mse) and np.isfinite(m.baseline_mse)
     assert m.in_use == (m.val_mse < 0.5 * m.baseline_mse)
     assert m.val_mse < m.baseline_mse  # the equation alone beat predicting no change on real transitions
-    with pytest.raises(ConfigError, match="applies to pimbrl"):
-        _pendulum("mbrl", physics_start=100)
+    with pytest.raises(ConfigError, match=r"--physics\.alone-from is a setting of --method pimbrl, pihybrid, not mbrl"):
+        _pendulum("mbrl", **{"physics.alone_from": 100})
     with pytest.raises(ConfigError, match="equivariant is a network on a PDE's grid"):
-        _pendulum("pimbrl", model="equivariant")
+        _pendulum("pimbrl", **{"model.network": "equivariant"})
 
 
 def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
     out = tmp_path / "study"
-    args = ["model-eval", "cartpole", "--run-dir", str(out), "--labels", "0,50", "--sources", "train,box", "--steps", "40",
+    args = ["model-eval", "cartpole", "--run-dir", str(out), "--labels", "0,50", "--physics.sources", "policy,box", "--steps", "40",
             "--test-transitions", "20", "--seed-states", "60", "--rollout-lengths", "1,3"]  # fmt: skip
     assert main(args) == 0
     with open(out / "study.csv") as fh:
@@ -157,7 +158,7 @@ def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
         only = list(csv.DictReader(fh))
     assert {r["model"] for r in only} == {"no-change", "data", "physics-only"}
     assert [r for r in only if r["model"] == "data"] == [r for r in rows if r["model"] == "data"]
-    assert main([*args[:3], str(tmp_path / "bad"), "--labels", "10", "--sources", "symmetry"]) == 2
+    assert main([*args[:3], str(tmp_path / "bad"), "--labels", "10", "--physics.sources", "symmetry"]) == 2
     assert main([*args[:3], str(tmp_path / "bad2"), *args[4:], "--models", "data,fourier"]) == 2
     assert main([*args[:3], str(tmp_path / "bad3"), *args[4:], "--models", ","]) == 2
     assert not (tmp_path / "bad2").exists() and not (tmp_path / "bad3").exists()  # refused before anything is written
@@ -178,16 +179,19 @@ def test_the_study_measures_errors_in_the_states_own_geometry() -> None:
 
 def test_sources_an_environment_does_not_offer_are_a_config_error() -> None:
     with pytest.raises(ConfigError, match="box not available for pimbrl/KuramotoSivashinsky-v0"):
-        resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "pimbrl", "dyna.physics_sources": "policy,box"})
+        resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "pimbrl", "physics.sources": ["policy", "box"]})
     with pytest.raises(ConfigError, match="symmetry not available for pimbrl/CartPole-v0"):
-        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "dyna.physics_sources": "symmetry"})
-    assert resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl"}).dyna.physics_sources == "auto"
+        resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl", "physics.sources": ["symmetry"]})
+    assert resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl"}).method.physics.sources == ()  # all it offers
 
 
 def test_the_physics_loss_stays_on_after_physics_start(tmp_path) -> None:
     """With physics_start below start_model_after, the physics loss is on in every model phase after it,
     also once labels are used and before n_sR is reached."""
-    cfg = _pendulum("pimbrl", physics_start=100, start_model_after=250, start_physics_after=10**6, physics_sources="box")
+    cfg = _pendulum(
+        "pimbrl",
+        **{"physics.alone_from": 100, "model.start_after": 250, "physics.start_after": 10**6, "physics.sources": ("box",)},
+    )
     run = create_run(cfg, tmp_path / "run", progress=False)
     seen = []
     train(run, on_event=lambda name, r: seen.append(dict(r.model.metrics)) if name == "model_phase" else None)

@@ -207,7 +207,7 @@ def test_compare_refuses_duplicate_seeds(tmp_path, capsys) -> None:
 # ---------------------------------------------------------------------- resume re-validates
 @pytest.mark.parametrize(
     ("edit", "flags"),
-    [({"utd": -1.0}, ["--utd", "-1"]), ({"agent_config": {"gamma": 7.5}}, ["--agent.gamma", "7.5"])],
+    [({"utd": -1.0}, ["--utd", "-1"]), ({"agent": {"name": "td3", "gamma": 7.5}}, ["--agent.gamma", "7.5"])],
 )
 def test_resume_revalidates_an_edited_config(edit: dict, flags: list[str], run_copy: Path, tmp_path, capsys) -> None:
     assert main(["train", "pendulum", "--run-dir", str(tmp_path / "never"), *flags, "--quiet"]) == 2

@@ -131,9 +131,9 @@ def _json_mutations() -> dict[str, Mutation]:
         for label in ("null", "a string", "-1", "1e308", "a list", "true", "Infinity"):
             value, raw = values[label]
             out[f"config.{key} = {label}"] = set_field(["config", key], value, raw)
-    out["config.agent_config.hidden = [0]"] = set_field(["config", "agent_config", "hidden"], [0])
-    out["config.agent_config.hidden = [1e9]"] = set_field(["config", "agent_config", "hidden"], [10**9])
-    out["config.agent_config = []"] = set_field(["config", "agent_config"], [])
+    out["config.agent.hidden = [0]"] = set_field(["config", "agent", "hidden"], [0])
+    out["config.agent.hidden = [1e9]"] = set_field(["config", "agent", "hidden"], [10**9])
+    out["config.agent = []"] = set_field(["config", "agent"], [])
     out["summary.wall_s = null"] = set_field(["summary", "wall_s"], None)
     out["summary.wall_s = a 400-digit integer"] = set_field(["summary", "wall_s"], None, "1" + "0" * 400)
     out["config.threshold = a 400-digit integer"] = set_field(["config", "threshold"], None, "1" + "0" * 400)

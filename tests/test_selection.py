@@ -1,4 +1,4 @@
-"""Model-based policy selection (``dyna.select_episodes``): judged in the model, trains nothing differently."""
+"""Model-based policy selection (``imagine.select_episodes``): judged in the model, trains nothing differently."""
 
 from __future__ import annotations
 
@@ -18,13 +18,15 @@ from .test_training import _table
 # each test trains several short model-based runs (8-13 s each): the slow tier
 pytestmark = pytest.mark.slow
 
-PENDULUM = {"method": "mbrl", "total_steps": 600, "warmup_steps": 100, "update_after": 100, "eval_every": 100, "eval_episodes": 3}
-SMALL_AGENT = {"hidden": (16, 16), "batch_size": 16}
-DYNA = {"model": "physics", "start_model_after": 100, "rollouts": 4, "rollout_length": 5, "threshold": 1e3, "validation_size": 32}
+PENDULUM = {"total_steps": 600, "warmup_steps": 100, "update_after": 100, "eval_every": 100, "eval_episodes": 3}
+SMALL_AGENT = {"agent.hidden": (16, 16), "agent.batch_size": 16}
+#: the known scheme as the model: imagined episodes are the simulator's
+DYNA = {"method": "known-scheme", "model.start_after": 100, "imagine.rollouts": 4, "imagine.rollout_length": 5,
+        "check.threshold": 1e3, "check.validation_size": 32}  # fmt: skip
 
 
 def _run(tmp_path, name: str, select: int, env: str = "pimbrl/Pendulum-v0"):
-    cfg = resolve_config(env, dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": select})
+    cfg = resolve_config(env, {**PENDULUM, **SMALL_AGENT, **DYNA, "imagine.select_episodes": select})
     run = create_run(cfg, tmp_path / name, progress=False)
     return run, train(run)
 
@@ -68,7 +70,7 @@ def test_selection_keeps_the_best_imagined_policy_and_trains_as_without_it(tmp_p
 
 
 def test_a_run_that_has_not_evaluated_yet_has_no_selected_policy(tmp_path) -> None:
-    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 4})
+    cfg = resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, **SMALL_AGENT, **DYNA, "imagine.select_episodes": 4})
     run = create_run(cfg, tmp_path / "run", progress=False)
     with pytest.raises(ValueError, match="has not selected a policy yet"):
         run.use_selected_policy()
@@ -77,7 +79,7 @@ def test_a_run_that_has_not_evaluated_yet_has_no_selected_policy(tmp_path) -> No
 
 def test_imagined_episodes_of_the_physics_model_are_the_real_episodes(tmp_path) -> None:
     """With the equation in the model, an imagined episode is the simulator's episode (single precision)."""
-    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 5})
+    cfg = resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, **SMALL_AGENT, **DYNA, "imagine.select_episodes": 5})
     run = create_run(cfg, tmp_path / "run", progress=False)
     assert run.model is not None and run.model.selector is not None
     selector, task, agent = run.model.selector, run.task, run.agent
@@ -105,7 +107,7 @@ class _Exploding(torch.nn.Module):
 
 
 def test_a_blown_up_imagined_episode_ends_with_the_divergence_penalty(tmp_path) -> None:
-    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), {**DYNA, "select_episodes": 4})
+    cfg = resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, **SMALL_AGENT, **DYNA, "imagine.select_episodes": 4})
     run = create_run(cfg, tmp_path / "run", progress=False)
     env = ModelEnv(_Exploding(), run.task, run.adapter, physics=run.physics)  # type: ignore[arg-type]
     selector = PolicySelector(env, 4)
@@ -131,15 +133,15 @@ def test_eval_of_the_selected_policy(tmp_path, capsys) -> None:
 
 
 def test_selection_is_refused_for_mfrl(capsys) -> None:
-    assert main(["train", "pendulum", "--method", "mfrl", "--dyna.select-episodes", "10", "--print-config"]) != 0
-    assert "--dyna.select-episodes applies to the model-based methods" in capsys.readouterr().err
+    assert main(["train", "pendulum", "--method", "mfrl", "--imagine.select-episodes", "10", "--print-config"]) != 0
+    assert "--imagine.select-episodes is a setting of --method mbrl, pimbrl" in capsys.readouterr().err
 
 
 def test_evaluating_a_run_without_a_checkpoint_says_so(tmp_path, capsys) -> None:
     """``pimbrl eval``, the figures and the benchmarks share one check and one message."""
     from pimbrl.experiments.figures import load_run
 
-    cfg = resolve_config("pimbrl/Pendulum-v0", dict(PENDULUM), dict(SMALL_AGENT), dict(DYNA))
+    cfg = resolve_config("pimbrl/Pendulum-v0", {**PENDULUM, **SMALL_AGENT, **DYNA})
     create_run(cfg, tmp_path / "new", progress=False).run_dir.close()  # config.json, no checkpoint
     assert main(["eval", str(tmp_path / "new")]) != 0
     assert "has no checkpoint yet: nothing to evaluate (train or resume it first)" in capsys.readouterr().err
@@ -161,7 +163,7 @@ def test_the_selection_summary_benchmark_reads_what_the_run_logged(tmp_path) -> 
     assert "first at threshold 100 " in out  # every return is above -1e9: the first evaluation
     plain, _ = _run(tmp_path, "plain", 0)
     failed = subprocess.run([sys.executable, str(script), str(plain.run_dir.path)], capture_output=True, text=True)
-    assert failed.returncode != 0 and "was the run trained with --dyna.select-episodes N?" in failed.stderr
+    assert failed.returncode != 0 and "was the run trained with --imagine.select-episodes N?" in failed.stderr
 
 
 def test_the_steps_ratio_benchmark_reads_run_directories_and_records(tmp_path) -> None:

@@ -74,13 +74,13 @@ def vanderpol() -> str:
 def test_a_third_system_from_this_file_alone_trains_with_pimbrl(vanderpol: str, tmp_path) -> None:
     run = tmp_path / "run"
     flags = ["--steps", "240", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "120", "--eval-episodes", "2"]
-    flags += ["--dyna.start-model-after", "60", "--dyna.start-physics-after", "60", "--dyna.rollout-length", "5"]
+    flags += ["--model.start-after", "60", "--physics.start-after", "60", "--imagine.rollout-length", "5"]
     assert main(["train", "vanderpol", "--method", "pimbrl", *flags, "--run-dir", str(run), *TINY]) == 0
     payload = json.loads((run / "config.json").read_text())
     assert payload["status"] == "finished" and payload["system"] == {"id": vanderpol, "origin": f"module {__name__}"}
     # config.json records the model that trained: an MLP emitting one state per solver step, checked by the solver
-    dyna = payload["config"]["dyna"]
-    assert (dyna["model"], dyna["residual"], dyna["n_intermediate"]) == ("mlp", "solver", 3)
+    method = payload["config"]["method"]
+    assert (method["network"], method["scheme"], method["n_intermediate"]) == ("mlp", "solver", 3)
     metrics = (run / "metrics.csv").read_text().splitlines()
     header = metrics[0].split(",")
     physics = [row.split(",")[header.index("model/physics_loss")] for row in metrics[1:]]
@@ -191,7 +191,7 @@ def test_the_examples_train_through_the_command_line(example: str, alias: str, m
     run = tmp_path / "run"
     flags = ["--steps", "200", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "100", "--eval-episodes", "2"]
     if method != "mfrl":
-        flags += ["--dyna.start-model-after", "60"]
+        flags += ["--model.start-after", "60"]
     cmd = [sys.executable, "-m", "pimbrl.cli", "train", alias, "--import", example, "--method", method, *flags]
     out = subprocess.run([*cmd, "--run-dir", str(run), *TINY], capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr

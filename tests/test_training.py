@@ -227,7 +227,10 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch) -> None:
     [
         (["--agent.gamma", "1.5"], "agent.gamma must be in (0.0, 1.0], got 1.5"),
         (["--eval-every", "0"], "eval_every must be > 0, got 0"),
-        (["--method", "magic"], "method must be one of 'mfrl', 'mbrl', 'pimbrl', got 'magic'"),
+        (
+            ["--method", "magic"],
+            "method must be one of mfrl, mbrl, pimbrl, known-scheme, identified-scheme, hybrid, pihybrid, got 'magic'",
+        ),
         (["--agent.exploration-noise", "-0.1"], "agent.exploration_noise must be in [0.0, 1.0], got -0.1"),
         (["--env-kwargs", "{bad json"], "--env-kwargs must be a JSON object"),
     ],
@@ -250,12 +253,12 @@ def test_existing_run_dir_and_unknown_env(tmp_path, capsys) -> None:
 
 
 def test_none_on_the_command_line_clears_a_preset_value() -> None:
-    from pimbrl.cli import build_train_config
+    from pimbrl.training.cli_args import config_from_argv as build_train_config
 
-    cfg = build_train_config(["ks", "--method", "pimbrl", "--dyna.finetune-return", "none", "--threshold", "none"])
-    assert cfg.dyna.finetune_return is None and cfg.threshold is None
+    cfg = build_train_config(["ks", "--method", "pimbrl", "--finetune.at-return", "none", "--threshold", "none"])
+    assert cfg.method.finetune.at_return is None and cfg.threshold is None
     preset = build_train_config(["ks", "--method", "pimbrl"])
-    assert preset.dyna.finetune_return == -55.0 and preset.threshold == -55.0
+    assert preset.method.finetune.at_return == -55.0 and preset.threshold == -55.0
 
 
 def test_a_run_that_cannot_start_leaves_no_directory(tmp_path, capsys) -> None:
@@ -271,5 +274,5 @@ def test_print_config_shows_the_resolved_preset_and_trains_nothing(tmp_path, cap
     assert main(["train", "ks", "--method", "pimbrl", "--utd", "3", "--print-config", "--run-dir", str(run)]) == 0
     cfg = json.loads(capsys.readouterr().out)
     assert cfg["env"] == "pimbrl/KuramotoSivashinsky-v0" and cfg["utd"] == 3.0
-    assert cfg["agent_config"]["gamma"] == 0.977 and cfg["dyna"]["rollout_length"] == 3
+    assert cfg["agent"]["gamma"] == 0.977 and cfg["method"]["imagine"]["rollout_length"] == 3
     assert not run.exists()

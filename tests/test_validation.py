@@ -8,22 +8,34 @@ import typing
 
 import pytest
 
-from pimbrl.agents import AgentConfig
+from pimbrl.agents import DDPGConfig, SACConfig, TD3Config
 from pimbrl.buffers import ReplayBuffer
 from pimbrl.cli import main
 from pimbrl.config import ConfigError, validate
 from pimbrl.experiments.model_eval import ModelEvalConfig
-from pimbrl.training import DynaConfig, TrainConfig
-from pimbrl.training.config import config_from_dict, resolve_config
+from pimbrl.training import TrainConfig
+from pimbrl.training.config import Experimental, config_from_dict, resolve_config
+from pimbrl.training.methods import METHOD_TYPES, SECTIONS
 
 #: numeric fields that are finite but deliberately unbounded: returns and a model-error threshold, which
 #: are only compared with measured values (a huge one is harmless: it is simply always or never reached)
-UNBOUNDED = {"TrainConfig.threshold", "DynaConfig.threshold", "DynaConfig.finetune_return"}
+UNBOUNDED = {"TrainConfig.threshold", "AccuracyCheck.threshold", "Finetune.at_return"}
+#: every configuration type: the run, the agents, the methods and their sections, the experimental knobs, model-eval
+CONFIG_TYPES = (
+    TrainConfig,
+    TD3Config,
+    DDPGConfig,
+    SACConfig,
+    Experimental,
+    *METHOD_TYPES.values(),
+    *SECTIONS.values(),
+    ModelEvalConfig,
+)
 
 
 def _numeric_fields() -> list[tuple[type, str, type]]:
     out = []
-    for cls in (TrainConfig, AgentConfig, DynaConfig, ModelEvalConfig):
+    for cls in CONFIG_TYPES:
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             args = [a for a in typing.get_args(hints[f.name]) if a is not type(None)] or [hints[f.name]]
@@ -61,7 +73,7 @@ def test_every_numeric_field_has_an_upper_bound(cls: type, name: str, base: type
 
 
 def test_bounds_are_stated_in_the_help_texts() -> None:
-    for cls in (TrainConfig, AgentConfig, DynaConfig, ModelEvalConfig):
+    for cls in CONFIG_TYPES:
         for f in dataclasses.fields(cls):
             if f"{cls.__name__}.{f.name}" in UNBOUNDED or f.metadata.get("check") is None:
                 continue
@@ -80,15 +92,15 @@ def test_bounds_are_stated_in_the_help_texts() -> None:
         ({"agent": "sac", "agent.init_alpha": math.inf}, "agent.init_alpha must be finite, got inf"),
         ({"agent": "sac", "agent.alpha_lr": math.inf}, "agent.alpha_lr must be finite, got inf"),
         ({"agent": "sac", "agent.target_entropy": -math.inf}, "agent.target_entropy must be finite, got -inf"),
-        ({"method": "pimbrl", "dyna.physics_weight": math.inf}, "dyna.physics_weight must be finite, got inf"),
+        ({"method": "pimbrl", "physics.weight": math.inf}, "physics.weight must be finite, got inf"),
         ({"threshold": math.nan}, "threshold must be finite, got nan"),
         ({"buffer_size": 10**12}, "buffer_size must be <= 100,000,000"),
         ({"agent.hidden": (100_000_000, 1)}, "agent.hidden must be"),
-        ({"method": "mbrl", "dyna.imagined_buffer_size": 10**12}, "dyna.imagined_buffer_size must be <= 100,000,000"),
+        ({"method": "mbrl", "imagine.buffer_size": 10**12}, "imagine.buffer_size must be <= 100,000,000"),
         ({"eval_episodes": 10**9}, "eval_episodes must be <= "),
-        ({"method": "mbrl", "dyna.rollouts": 10**12}, "dyna.rollouts must be <= "),
+        ({"method": "mbrl", "imagine.rollouts": 10**12}, "imagine.rollouts must be <= "),
         ({"agent.batch_size": 10**12}, "agent.batch_size must be <= "),
-        ({"method": "mbrl", "dyna.model_batch_size": 10**12}, "dyna.model_batch_size must be <= "),
+        ({"method": "mbrl", "fit.batch_size": 10**12}, "fit.batch_size must be <= "),
         ({"total_steps": 10**30}, "total_steps must be <= "),
         ({"seed": 10**30}, "seed must be <= "),
     ],

@@ -2,7 +2,7 @@
 
 Every system has validation initial states disjoint from its test states (KS: a validation pool from runs of
 its own seed stream; the others: draws from a seed stream no evaluation seed reaches). The switch to
-model-free fine-tuning (``dyna.finetune_return``) reads the mean return on those, so two runs that differ
+model-free fine-tuning (``finetune.at_return``) reads the mean return on those, so two runs that differ
 only in their test set (number of test episodes and evaluation seed) train identically, step for step, on
 every system, while the switch fires in both at the same step.
 """
@@ -51,7 +51,7 @@ CASES = {
     "ks": (
         [
             "--method", "pimbrl", "--steps", "200", "--warmup-steps", "40", "--update-after", "40", "--update-every", "20",
-            "--eval-every", "40", "--dyna.start-model-after", "40", "--dyna.finetune-episodes", "2", "--env-kwargs", KS_POOL,
+            "--eval-every", "40", "--model.start-after", "40", "--finetune.episodes", "2", "--env-kwargs", KS_POOL,
         ],
         "-850",
         (("2", "5"), ("8", "6")),
@@ -59,13 +59,13 @@ CASES = {
     # systems of a user's own (issue 28): the same holds for every declared system
     "duffing": (
         ["--import", EXAMPLES["duffing"], "--method", "mbrl", "--steps", "600", "--warmup-steps", "100", "--update-after", "100",
-         "--eval-every", "100", "--dyna.start-model-after", "100"],
+         "--eval-every", "100", "--model.start-after", "100"],
         "-40",
         (("2", "5"), ("6", "6")),
     ),
     "allen-cahn": (
         ["--import", EXAMPLES["allen-cahn"], "--method", "mbrl", "--steps", "600", "--warmup-steps", "100",
-         "--update-after", "100", "--eval-every", "100", "--dyna.start-model-after", "100"],
+         "--update-after", "100", "--eval-every", "100", "--model.start-after", "100"],
         "-56",
         (("2", "5"), ("6", "6")),
     ),
@@ -102,7 +102,7 @@ def test_a_run_trains_the_same_whatever_its_test_set(env: str, tmp_path) -> None
     runs = []
     for i, (episodes, seed) in enumerate(test_sets):
         run = tmp_path / f"run{i}"
-        argv = ["train", env, *flags, "--eval-episodes", episodes, "--eval-seed", seed, "--dyna.finetune-return", threshold]
+        argv = ["train", env, *flags, "--eval-episodes", episodes, "--eval-seed", seed, "--finetune.at-return", threshold]
         assert main([*argv, "--log-every", flags[flags.index("--eval-every") + 1], "--run-dir", str(run), *TINY]) == 0
         runs.append(run)
     a, b = runs
@@ -160,7 +160,7 @@ def test_the_validation_return_is_checkpointed(tmp_path) -> None:
     Pendulum, threshold -1430: on this code the validation return first reaches it at the evaluation of step
     600, which ends an episode (a checkpoint); the model phase at 650 reads it from the checkpoint.
     """
-    flags = ["pendulum", *CASES["pendulum"][0], "--dyna.finetune-return", "-1430", "--log-every", "50"]
+    flags = ["pendulum", *CASES["pendulum"][0], "--finetune.at-return", "-1430", "--log-every", "50"]
     flags += ["--checkpoint-every", "200", "--eval-episodes", "2", *TINY]
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert main(["train", *flags, "--run-dir", str(whole)]) == 0

@@ -42,6 +42,14 @@ class Batch:
     def __len__(self) -> int:
         return self.obs.shape[0]
 
+    def to(self, device: torch.device) -> Batch:
+        """The batch on ``device`` (itself where it is there already: the CPU's, without a copy)."""
+        if self.obs.device == device:
+            return self
+        return Batch(
+            *(t.to(device) for t in (self.obs, self.action, self.reward, self.next_obs, self.terminated, self.truncated))
+        )
+
     @staticmethod
     def concat(parts: list[Batch]) -> Batch:
         """Concatenate batches along the batch dimension."""

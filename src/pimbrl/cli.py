@@ -13,28 +13,31 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .config import ConfigError, add_arguments, overrides_from_args, to_dict
+from .config import ConfigError, add_arguments, overrides_from_args
 
-__all__ = ["budget_warnings", "build_parser", "config_warnings", "main"]
+__all__ = ["build_parser", "config_warnings", "main"]
 
 
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors suggest the closest choice for a mistyped one."""
 
     def error(self, message: str) -> Any:
-        """Print the usage and ``message`` (with a suggestion where one is close) and exit with status 2."""
+        """Print ``message`` (with a suggestion where one is close) in one line, and exit with status 2.
+
+        No usage block: the line says what is wrong and where the options are listed.
+        """
         choice = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
         if choice:
             options = re.findall(r"'([^']*)'", choice.group(2))
             message += _suggestion(choice.group(1), options)
-        super().error(message)
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
     def fail_unknown(self, unknown: list[str]) -> None:
         """Exit with the error for the unrecognised arguments ``unknown``, suggesting the closest flag."""
         flags = [o for a in self._actions for o in a.option_strings]
         first = next((u.split("=")[0] for u in unknown if u.startswith("-")), None)
         hint = _suggestion(first, flags, quote=False) if first else ""
-        super().error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
+        self.error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
 
 
 def _suggestion(word: str, options: Sequence[str], quote: bool = True) -> str:
@@ -82,11 +85,12 @@ def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
 def _train_config_from_args(args: argparse.Namespace):
     from .simulate import resolve_env_id
     from .training.cli_args import overrides_from_namespace
-    from .training.config import load_config_file, resolve_config
+    from .training.config import flag_of, load_config_file, resolve_config
 
     overrides = overrides_from_namespace(args)
     if args.config is not None:  # a whole configuration: nothing else may change it
-        given = [_flag_of(k) for k in overrides] + ([f"the environment {args.env!r}"] if args.env is not None else [])
+        given = [flag_of(k) for k in overrides] + ([f"the environment {args.env!r}"] if args.env is not None else [])
+        given += ["--preset"] if args.preset is not None else []
         if given:
             raise ValueError(
                 f"--config {args.config} is a whole configuration; it cannot be combined with {', '.join(given)} "
@@ -97,73 +101,14 @@ def _train_config_from_args(args: argparse.Namespace):
         raise ValueError(
             "`pimbrl train` needs an environment (ks, burgers, cartpole, pendulum, or a Gymnasium id) or --config FILE"
         )
-    return resolve_config(resolve_env_id(args.env), overrides)
+    return resolve_config(resolve_env_id(args.env), overrides, preset=args.preset)
 
 
-def _flag_of(path: str) -> str:
-    head, _, name = path.rpartition(".")
-    return "--steps" if path == "total_steps" else f"--{head + '.' if head else ''}{name.replace('_', '-')}"
+def config_warnings(cfg: Any, preset: str | None = None) -> list[str]:
+    """:func:`pimbrl.training.advice.config_warnings` (kept here for the command line's callers)."""
+    from .training.advice import config_warnings as warnings
 
-
-def build_train_config(argv: list[str]):
-    """The :class:`~pimbrl.training.TrainConfig` that ``pimbrl train <argv>`` would run.
-
-    Kept for compatibility; the implementation is :func:`pimbrl.training.cli_args.config_from_argv`.
-    """
-    from .training.cli_args import config_from_argv
-
-    return config_from_argv(argv)
-
-
-def budget_warnings(cfg: Any) -> list[str]:
-    """What a run of ``cfg`` (a :class:`~pimbrl.training.TrainConfig`) will never do within its budget.
-
-    One line each: no agent update (the budget ends by ``update_after``), random actions only (by
-    ``warmup_steps``), no model (model-based runs, by ``dyna.start_model_after``), and no physics-only
-    training before ``update_after`` (pimbrl with ``dyna.physics_start`` below it: model phases run only
-    from ``update_after`` on), with the flag to change.
-    """
-    n = cfg.total_steps
-    out = []
-    if n <= cfg.update_after:
-        out.append(
-            f"--steps {n} ends before the first agent update (update_after = {cfg.update_after}): the agent is never "
-            f"trained; give --steps above {cfg.update_after} or a lower --update-after"
-        )
-    if n <= cfg.warmup_steps:
-        out.append(
-            f"--steps {n} ends within the random warm-up (warmup_steps = {cfg.warmup_steps}): every action is random; "
-            f"give --steps above {cfg.warmup_steps} or a lower --warmup-steps"
-        )
-    if cfg.method in ("mbrl", "pimbrl") and n <= cfg.dyna.start_model_after:
-        out.append(
-            f"--steps {n} ends before the model is first trained (dyna.start_model_after = {cfg.dyna.start_model_after}): "
-            f"the run never uses a model; give --steps above {cfg.dyna.start_model_after} or a lower --dyna.start-model-after"
-        )
-    start = cfg.dyna.physics_start if cfg.method == "pimbrl" else None
-    if start is not None and start < cfg.update_after:
-        first = (
-            "the labels join then too, so no phase trains on the physics alone"
-            if (cfg.dyna.start_model_after <= cfg.update_after)
-            else f"the physics-only training runs from {cfg.update_after} to {cfg.dyna.start_model_after}"
-        )
-        out.append(
-            f"dyna.physics_start = {start} is before update_after = {cfg.update_after}, and model phases run only "
-            f"from update_after on: {first}; give a lower --update-after to train the model earlier"
-        )
-    return out
-
-
-def config_warnings(cfg: Any) -> list[str]:
-    """Everything ``pimbrl train`` and ``pimbrl compare`` warn about in a configuration.
-
-    A system without a preset (:func:`~pimbrl.training.config.preset_note`), :func:`budget_warnings`, then the
-    preset values kept on another return scale (:func:`~pimbrl.training.config.return_scale_warnings`).
-    """
-    from .training.config import preset_note, return_scale_warnings
-
-    note = preset_note(cfg.env)
-    return [*([note] if note else []), *budget_warnings(cfg), *return_scale_warnings(cfg)]
+    return warnings(cfg, preset)
 
 
 def _check_run_dir(path: str | Path, flag: str = "--run-dir") -> None:
@@ -197,13 +142,26 @@ def _train(args: argparse.Namespace, run: Any) -> Any:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    cfg = _train_config_from_args(args)
-    for line in config_warnings(cfg):
-        print(f"pimbrl train: warning: {line}", file=sys.stderr)
-    if args.print_config:  # the resolved configuration (defaults, preset, overrides); nothing is trained
-        print(json.dumps(to_dict(cfg), indent=2))
+    if args.help_all:
+        from .training.cli_args import full_help
+
+        print(full_help())
         return 0
-    run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method, cfg.agent, cfg.seed)
+    cfg = _train_config_from_args(args)
+    for line in config_warnings(cfg, args.preset):
+        print(f"pimbrl train: warning: {line}", file=sys.stderr)
+    if args.preset is not None and args.config is None:
+        from .training.config import recipe_of
+
+        recipe = recipe_of(cfg.env, args.preset)
+        chosen = f"; chosen by {recipe.chosen_by}" if recipe.chosen_by else ""
+        print(f"pimbrl train: recipe {recipe.name} of {cfg.env}: {recipe.about}{chosen}", file=sys.stderr)
+    if args.print_config:  # the resolved configuration (defaults, recipe, overrides); nothing is trained
+        from .training.config import config_to_dict
+
+        print(json.dumps(config_to_dict(cfg), indent=2))
+        return 0
+    run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method.name, cfg.agent.name, cfg.seed)
     _check_run_dir(run_dir)
     from .training import create_run
 
@@ -292,30 +250,49 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
     from . import plotting
     from .training import RunDirectory
+    from .training.legacy import method_and_agent
 
-    curves = []
-    thresholds = set()
-    envs = set()
-    for i, path in enumerate(args.run_dirs):
+    if args.labels and len(args.labels) != len(args.run_dirs):
+        raise ValueError(f"--labels gives {len(args.labels)} labels for {len(args.run_dirs)} run directories; give one each")
+    runs = []
+    for path in args.run_dirs:
         run = RunDirectory(path)
         run.check_entries()
         cfg = run.recorded_config()
         rows = run.evaluations.read()
         if not rows:
             raise ValueError(f"{path} has no evaluations yet")
-        label = (
-            args.labels[i]
-            if args.labels and i < len(args.labels)
-            else f"{cfg.get('method')}/{cfg.get('agent')} seed {cfg.get('seed')}"
+        runs.append((path, cfg, rows))
+    envs = sorted({cfg["env"] for _, cfg, _ in runs})
+    if len(envs) > 1:
+        print(
+            f"pimbrl plot: warning: the runs are on {len(envs)} systems ({', '.join(envs)}), whose returns are on "
+            "different scales; each curve's label names its system",
+            file=sys.stderr,
         )
+    names = []
+    for _path, cfg, _ in runs:
+        method, agent = method_and_agent(cfg)
+        system = f"{cfg['env'].split('/')[-1]} " if len(envs) > 1 else ""
+        names.append(f"{system}{method}/{agent} seed {cfg.get('seed')}")
+    for i, name in enumerate(names):  # two runs with the same description: the directory tells them apart
+        if names.count(name) > 1:
+            names[i] = f"{name} ({runs[i][0]})"
+    curves = []
+    thresholds = set()
+    for i, (_, cfg, rows) in enumerate(runs):
+        label = args.labels[i] if args.labels else names[i]
         cols = {name: np.array([float(r[name]) for r in rows]) for name in ("step", "return_mean", "return_min", "return_max")}
         curves.append((label, cols["step"], cols["return_mean"], cols["return_min"], cols["return_max"]))
         if cfg.get("threshold") is not None:
             thresholds.add(float(cfg["threshold"]))
-        envs.add(cfg["env"])
     out = Path(args.out)
     plotting.plot_learning_curves(
-        curves, out, title=", ".join(sorted(envs)), threshold=thresholds.pop() if len(thresholds) == 1 else None
+        curves,
+        out,
+        title=", ".join(envs),
+        threshold=thresholds.pop() if len(thresholds) == 1 else None,
+        band="band: the lowest to the highest return of the test episodes at each evaluation",
     )
     print(f"figure: {out}")
     return 0
@@ -324,12 +301,21 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_model_eval(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from .config import parse_learned, parse_prior
     from .experiments import ModelEvalConfig, model_eval_defaults, run_model_eval
     from .simulate import resolve_env_id
+    from .training.methods import PhysicsLoss
 
     env_id = resolve_env_id(args.env)
     fields = {**model_eval_defaults(env_id), **overrides_from_args(args, ModelEvalConfig)}
+    for flag, parse in (("env_coefficients", parse_prior), ("physics_prior", parse_prior), ("learn_coefficients", parse_learned)):
+        text = getattr(args, f"{flag}_text")
+        if text is not None:  # the short text of the command line, read once into the setting's mapping
+            value = parse(text)
+            fields[flag] = {k: list(v) if isinstance(v, tuple) else v for k, v in value.items()}
+    physics = overrides_from_args(args, PhysicsLoss, prefix="physics.")
     cfg = dataclasses.replace(ModelEvalConfig(), **fields)
+    cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, **physics))
     if cfg.labels:  # the study: errors against the number of labelled transitions
         from .experiments.model_study import run_model_study
 
@@ -443,12 +429,20 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
 
 FIGURES = ("ks-contours", "burgers", "model-errors", "rollouts", "curves")
+#: each figure's default file in the run directory (model-eval writes model_errors.png: a histogram figure has its own)
+FIGURE_FILES = {
+    "ks-contours": "ks_contours.png",
+    "burgers": "burgers_episodes.png",
+    "model-errors": "model_error_histograms.png",
+    "rollouts": "rollouts.png",
+    "curves": "curves.png",
+}
 
 
 def _cmd_figure(args: argparse.Namespace) -> int:
     from .experiments import figures
 
-    out = Path(args.out) if args.out else Path(args.dirs[0]) / f"{args.kind}.png"
+    out = Path(args.out) if args.out else Path(args.dirs[0]) / FIGURE_FILES[args.kind]
     if args.kind != "curves" and len(args.dirs) != 1:
         raise ValueError(f"`pimbrl figure {args.kind}` takes one directory, got {len(args.dirs)}")
     if args.kind in ("ks-contours", "burgers", "rollouts"):
@@ -472,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .training.config import POLICIES
 
     parser = _Parser(prog="pimbrl", description="Physics-informed model-based RL for dynamic control.")
+    parser.add_argument("--version", action="version", version=f"pimbrl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("simulate", help="run one episode with a simple policy, print the return and plot it")
@@ -493,10 +488,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser(
         "train",
-        help="train an agent (presets per environment; any field can be overridden)",
-        description="Train an agent. Presets come from the paper per environment; every field of the "
-        "configuration can be overridden with the flags below. A flag that does nothing for the chosen "
-        "method, agent or environment (e.g. --dyna.* with --method mfrl) is an error.",
+        help="train an agent (a recipe per system; every setting can be overridden)",
+        description="Train an agent with a method on a system. The system's recipe (--preset: default, paper, best) "
+        "sets the budget; every setting can be overridden: the common ones are below, all of them with "
+        "--help-all (--imagine.rollout-length, --physics.weight, --agent.gamma, ...). A setting the chosen method "
+        "or agent does not have is an error naming those that have it.",
     )
     tr.add_argument(
         "env",
@@ -508,12 +504,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--config",
         default=None,
         metavar="FILE",
-        help="train the whole configuration in this JSON file (as --print-config writes it) instead of a preset "
-        "with flags; no other configuration flags may be given with it",
+        help="train the whole configuration in this JSON or YAML file (as --print-config writes it) instead of a "
+        "recipe with flags; no other configuration flags may be given with it",
     )
     tr.add_argument("--run-dir", default=None, help="run directory (default: runs/<env>/<method>-<agent>-seed<seed>)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     tr.add_argument("--print-config", action="store_true", help="print the resolved configuration as JSON and exit")
+    tr.add_argument("--help-all", action="store_true", help="list every setting's flag, with the methods that have it")
     add_train_flags(tr)
     _add_import(tr)
     tr.set_defaults(func=_cmd_train)
@@ -559,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     pl.set_defaults(func=_cmd_plot)
 
     from .experiments import ModelEvalConfig
+    from .training.methods import PhysicsLoss
 
     me = sub.add_parser(
         "model-eval",
@@ -567,6 +565,28 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("env", help="ks | burgers | cartpole | pendulum, or a system of yours that declares an out-of-sample set")
     me.add_argument("--run-dir", required=True, help="output directory (model_errors.csv, summary.json, model_errors.png)")
     add_arguments(me, ModelEvalConfig)
+    add_arguments(me, PhysicsLoss, prefix="physics.", skip=("start_after", "alone_from"))
+    me.add_argument(
+        "--env-coefficients",
+        dest="env_coefficients_text",
+        default=None,
+        metavar="NAME=VALUE,...",
+        help="study: the environment's coefficients where they differ from the paper's, e.g. nu=0.013",
+    )
+    me.add_argument(
+        "--physics-prior",
+        dest="physics_prior_text",
+        default=None,
+        metavar="NAME=VALUE,...",
+        help="study: the physics loss's prior where it differs from the environment, e.g. nu=0.01 (adds the model physics-true)",
+    )
+    me.add_argument(
+        "--learn-coefficients",
+        dest="learn_coefficients_text",
+        default=None,
+        metavar="NAME[:LOW:HIGH],...",
+        help="study: coefficients fitted to the labels from the prior, e.g. nu (adds the model physics-learned)",
+    )
     _add_import(me)
     me.set_defaults(func=_cmd_model_eval)
 
@@ -619,11 +639,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fg.add_argument("kind", choices=FIGURES)
     fg.add_argument("dirs", nargs="+", help="run directory (several for curves)")
-    fg.add_argument("--out", default=None, help="PNG path (default: <dir>/<kind>.png)")
+    fg.add_argument(
+        "--out",
+        default=None,
+        help="PNG path (default: in the first directory, " + ", ".join(f"{k}: {v}" for k, v in FIGURE_FILES.items()) + ")",
+    )
     fg.add_argument("--lengths", default="3,8,40,120", help="rollouts: rollout lengths to show")
     _add_import(fg)
     fg.set_defaults(func=_cmd_figure)
     return parser
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("pimbrl")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        return "unknown (not installed)"
 
 
 def _add_import(parser: argparse.ArgumentParser) -> None:

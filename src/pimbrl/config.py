@@ -18,10 +18,7 @@ import math
 import types
 import typing
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, TypeVar
-
-if TYPE_CHECKING:
-    from _typeshed import DataclassInstance
+from typing import Any
 
 __all__ = [
     "MAX_BATCH",
@@ -35,21 +32,14 @@ __all__ = [
     "add_arguments",
     "at_most",
     "check_env_id",
-    "field_type",
-    "from_dict",
     "overrides_from_args",
     "param",
     "parse_learned",
     "parse_prior",
-    "replace_path",
     "to_dict",
     "typed_value",
     "validate",
 ]
-
-#: a dataclass instance (typeshed's protocol: anything with ``__dataclass_fields__``)
-D = TypeVar("D", bound="DataclassInstance")
-
 
 #: transition models with the prior's coarse scheme inside (pimbrl.models.hybrid), for any system
 PHYSICS_MODEL_KINDS = ("physics", "hybrid")
@@ -209,25 +199,6 @@ def _field_types(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
 
-def from_dict(cls: type[D], data: dict[str, Any]) -> D:
-    """Rebuild a (nested) config dataclass from :func:`to_dict` output; unknown keys are an error."""
-    hints = _field_types(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        raise ConfigError(f"unknown {cls.__name__} field(s): {', '.join(sorted(unknown))}")
-    kwargs: dict[str, Any] = {}
-    for key, value in data.items():
-        tp = hints[key]
-        if isinstance(tp, type) and dataclasses.is_dataclass(tp) and isinstance(value, dict):
-            kwargs[key] = from_dict(tp, value)
-        elif _base_type(tp) is tuple and isinstance(value, list):
-            kwargs[key] = tuple(value)
-        else:
-            kwargs[key] = value
-    return cls(**kwargs)
-
-
 def _base_type(tp: Any) -> Any:
     """``int`` for ``int | None``, ``tuple`` for ``tuple[int, ...]``, etc."""
     origin = typing.get_origin(tp)
@@ -299,7 +270,7 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", 
             type=_parser_for(tp, f"{prefix}{f.name}"),
             default=UNSET,
             metavar=_base_type(tp).__name__.upper() if isinstance(_base_type(tp), type) else "VALUE",
-            help=f"{f.metadata.get('help', '')} (preset/default: {default!r})",
+            help=f"{f.metadata.get('help', '')} (default {default!r} where the recipe sets none; --print-config shows the run's)",
         )
 
 
@@ -311,38 +282,6 @@ def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -
         if value is not UNSET:
             out[f.name] = value
     return out
-
-
-def _nested_field(cls: type, head: str) -> dataclasses.Field | None:
-    """The nested-dataclass field of ``cls`` addressed by ``head`` (``None`` if there is none).
-
-    ``head`` is the field's name or its flag prefix (``agent`` for ``TrainConfig.agent_config``).
-    """
-    hints = _field_types(cls)
-    for f in dataclasses.fields(cls):
-        if dataclasses.is_dataclass(hints[f.name]) and head in (f.name, f.metadata.get("prefix")):
-            return f
-    return None
-
-
-def field_type(cls: type, path: str) -> Any:
-    """The declared type of the field at the dotted ``path`` of ``cls`` (``"agent.gamma"`` -> ``float``).
-
-    Raises :class:`ConfigError` naming ``path`` where there is no such field.
-    """
-    head, _, rest = path.partition(".")
-    if rest:
-        nested = _nested_field(cls, head)
-        if nested is None:
-            raise ConfigError(f"unknown configuration field {path!r}")
-        try:
-            return field_type(_field_types(cls)[nested.name], rest)
-        except ConfigError:
-            raise ConfigError(f"unknown configuration field {path!r}") from None
-    hints = _field_types(cls)
-    if head not in hints or dataclasses.is_dataclass(hints[head]):
-        raise ConfigError(f"unknown configuration field {path!r}")
-    return hints[head]
 
 
 def typed_value(tp: Any, value: Any, name: str) -> Any:
@@ -390,25 +329,6 @@ def typed_value(tp: Any, value: Any, name: str) -> Any:
             return dict(value)
         raise ConfigError(f"{name} must be an object (a dict), got {value!r}")
     return value
-
-
-def replace_path(cfg: D, path: str, value: Any) -> D:
-    """``dataclasses.replace`` through a dotted path, e.g. ``replace_path(cfg, "agent.gamma", 0.98)``.
-
-    A nested dataclass is addressed by its field name or its flag prefix (``agent`` for
-    ``agent_config``); ``value`` is checked against the field's type (:func:`typed_value`) but not
-    validated (call :func:`validate` on the result).
-    """
-    value = typed_value(field_type(type(cfg), path), value, path)
-    return _replace(cfg, path, value)
-
-
-def _replace(cfg: Any, path: str, value: Any) -> Any:
-    head, _, rest = path.partition(".")
-    if rest:
-        name = _nested_field(type(cfg), head).name  # type: ignore[union-attr]
-        return dataclasses.replace(cfg, **{name: _replace(getattr(cfg, name), rest, value)})
-    return dataclasses.replace(cfg, **{head: value})
 
 
 # ------------------------------------------------------------------ physical coefficients

@@ -167,15 +167,17 @@ def plot_learning_curves(
     title: str = "",
     threshold: float | None = None,
     xlabel: str = "real environment steps",
+    band: str = "band: lowest to highest test episode",
 ) -> Path:
     """Learning curves as the paper draws them, one per ``(label, steps, mean, low, high)``.
 
-    The mean test return is drawn as a line and the min-max range of the test episodes as a band.
+    The mean test return is drawn as a line and the min-max range of the test episodes as a band; ``band``
+    says what the band is, under the axis.
     """
     fig, ax = plt.subplots(figsize=(8, 5))
     draw_curves(ax, curves, () if threshold is None else (threshold,))
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("test return")
+    ax.set_xlabel(f"{xlabel}\n({band})" if band else xlabel)
+    ax.set_ylabel("mean test return")
     if title:
         ax.set_title(title)
     fig.tight_layout()

@@ -8,14 +8,27 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from .config import AGENT_NAMES, AgentConfig
+from .config import AGENT_NAMES, AGENT_TYPES, AgentConfig, DDPGConfig, SACConfig, TD3Config
 
 if TYPE_CHECKING:
     from .base import Agent
     from .sac import SAC
     from .td3 import DDPG, TD3
 
-__all__ = ["AGENTS", "AGENT_NAMES", "DDPG", "SAC", "TD3", "Agent", "AgentConfig", "make_agent"]
+__all__ = [
+    "AGENTS",
+    "AGENT_NAMES",
+    "AGENT_TYPES",
+    "DDPG",
+    "SAC",
+    "TD3",
+    "Agent",
+    "AgentConfig",
+    "DDPGConfig",
+    "SACConfig",
+    "TD3Config",
+    "make_agent",
+]
 
 #: names imported on first access (they import torch)
 _LAZY = {"Agent": "base", "SAC": "sac", "TD3": "td3", "DDPG": "td3"}
@@ -39,10 +52,15 @@ def _agents() -> dict[str, type[Agent]]:
     return {"td3": TD3, "ddpg": DDPG, "sac": SAC}
 
 
-def make_agent(name: str, obs_dim: int, act_dim: int, config: AgentConfig, seed: int) -> Agent:
-    """Construct the agent ``name`` (``td3``, ``ddpg`` or ``sac``)."""
-    try:
-        cls = _agents()[name]
-    except KeyError:
-        raise ValueError(f"unknown agent {name!r}: choose one of {', '.join(AGENT_NAMES)}") from None
-    return cls(obs_dim, act_dim, config, seed)
+def make_agent(
+    config: AgentConfig, obs_dim: int, act_dim: int, seed: int, critic_layer_norm: bool = False, device: str = "cpu"
+) -> Agent:
+    """Construct the agent that ``config`` configures (:class:`TD3Config` -> TD3, ...).
+
+    ``critic_layer_norm`` is the experimental layer normalisation of the critics' hidden layers; ``device``
+    where its networks run (``cpu`` or ``cuda``).
+    """
+    name = getattr(config, "name", None)
+    if name not in AGENT_TYPES or type(config) is not AGENT_TYPES[name]:
+        raise ValueError(f"make_agent needs one of {', '.join(t.__name__ for t in AGENT_TYPES.values())}, got {config!r}")
+    return _agents()[name](obs_dim, act_dim, config, seed, critic_layer_norm=critic_layer_norm, device=device)

@@ -65,16 +65,33 @@ class Agent(ABC):
     critic: CriticEnsemble
     critic_opt: torch.optim.Optimizer
 
-    def __init__(self, obs_dim: int, act_dim: int, config: AgentConfig, seed: int) -> None:
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        config: AgentConfig,
+        seed: int,
+        critic_layer_norm: bool = False,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.obs_dim = int(obs_dim)
         self.act_dim = int(act_dim)
         self.config = config
+        #: where the networks and their updates run; batches come from the CPU buffers and are moved here,
+        #: actions go back to the CPU, and every random draw stays on the CPU (the same draws on any device)
+        self.device = torch.device(device)
+        #: experimental: layer-normalise the critics' hidden layers (RLPD's remedy for many updates per step)
+        self.critic_layer_norm = bool(critic_layer_norm)
         self.n_updates = 0
         self.rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1,)))
         self.generator = torch.Generator().manual_seed(int(np.random.SeedSequence(seed, spawn_key=(2,)).generate_state(1)[0]))
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(np.random.SeedSequence(seed, spawn_key=(3,)).generate_state(1)[0]))
             self._build()
+        if self.device.type != "cpu":
+            for module in self._modules().values():
+                if isinstance(module, torch.nn.Module):
+                    module.to(self.device)  # in place: the optimisers keep the same parameters
 
     @abstractmethod
     def _build(self) -> None:

@@ -71,7 +71,7 @@ class GaussianActor(nn.Module):
             return torch.tanh(mu), torch.zeros(obs.shape[0], device=obs.device)
         log_std = self.log_std(h).clamp(self.LOG_STD_MIN, self.LOG_STD_MAX)
         std = log_std.exp()
-        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype).to(mu.device)  # drawn on the CPU: any device
         pre = mu + std * eps
         # log N(pre; mu, std) minus the log-det of tanh, in the numerically stable softplus form
         log_prob = (-0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)

@@ -10,6 +10,7 @@ import torch
 
 from ..buffers import Batch
 from .base import Agent, frozen, make_optimizer, polyak_update, target_copy
+from .config import SACConfig
 from .networks import CriticEnsemble, GaussianActor
 
 __all__ = ["SAC"]
@@ -19,11 +20,12 @@ class SAC(Agent):
     """Soft actor-critic; the temperature ``alpha`` is learned towards ``target_entropy`` (default ``-act_dim``)."""
 
     name = "sac"
+    config: SACConfig
 
     def _build(self) -> None:
         cfg = self.config
         self.actor = GaussianActor(self.obs_dim, self.act_dim, cfg.hidden)
-        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=2, layer_norm=cfg.critic_layer_norm)
+        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=2, layer_norm=self.critic_layer_norm)
         self.critic_targ = target_copy(self.critic)
         self.actor_opt = make_optimizer(self.actor.parameters(), cfg.actor_lr)
         self.critic_opt = make_optimizer(self.critic.parameters(), cfg.critic_lr)
@@ -58,17 +60,18 @@ class SAC(Agent):
         The sample's noise is seeded from ``rng`` if given, else from the agent's exploration stream
         (never from the update noise).
         """
-        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim).to(self.device)
         generator = None
         if not deterministic:
             source = self.rng if rng is None else rng
             generator = torch.Generator().manual_seed(int(source.integers(0, 2**62)))
         a, _ = self.actor(obs_t, deterministic=deterministic, generator=generator)
-        return a.numpy().astype(np.float32)
+        return a.cpu().numpy().astype(np.float32)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         """One critic step, one actor step, one temperature step (if tuned), then a target update."""
         cfg = self.config
+        batch = batch.to(self.device)
         alpha = self.alpha
         with torch.no_grad():
             next_a, next_logp = self.actor(batch.next_obs, generator=self.generator)

@@ -16,6 +16,7 @@ import torch
 
 from ..buffers import Batch
 from .base import Agent, frozen, make_optimizer, polyak_update, target_copy
+from .config import TD3Config
 from .networks import CriticEnsemble, DeterministicActor
 
 __all__ = ["DDPG", "TD3"]
@@ -26,11 +27,12 @@ class TD3(Agent):
 
     name = "td3"
     n_critics = 2
+    config: TD3Config  # DDPG's is a DDPGConfig: it reads none of TD3's own fields (no delay, no smoothing)
 
     def _build(self) -> None:
         cfg = self.config
         self.actor = DeterministicActor(self.obs_dim, self.act_dim, cfg.hidden)
-        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=self.n_critics, layer_norm=cfg.critic_layer_norm)
+        self.critic = CriticEnsemble(self.obs_dim, self.act_dim, cfg.hidden, n=self.n_critics, layer_norm=self.critic_layer_norm)
         self.actor_targ = target_copy(self.actor)
         self.critic_targ = target_copy(self.critic)
         self.actor_opt = make_optimizer(self.actor.parameters(), cfg.actor_lr)
@@ -61,8 +63,8 @@ class TD3(Agent):
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool = False, rng: np.random.Generator | None = None) -> np.ndarray:
         """Actor output plus Gaussian exploration noise (from ``rng`` if given), clipped to ``[-1, 1]``."""
-        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
-        a = self.actor(obs_t).numpy()
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim).to(self.device)
+        a = self.actor(obs_t).cpu().numpy()
         if not deterministic and self.config.exploration_noise > 0:
             noise = (self.rng if rng is None else rng).standard_normal(a.shape)
             a = np.clip(a + self.config.exploration_noise * noise, -1.0, 1.0)
@@ -71,10 +73,11 @@ class TD3(Agent):
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         """One critic step; every ``policy_delay`` updates (every update for DDPG) also an actor step and target updates."""
         cfg = self.config
+        batch = batch.to(self.device)
         with torch.no_grad():
             next_a = self.actor_targ(batch.next_obs)
             if self._smoothing:
-                noise = torch.randn(next_a.shape, generator=self.generator) * cfg.target_noise
+                noise = torch.randn(next_a.shape, generator=self.generator).to(self.device) * cfg.target_noise
                 next_a = (next_a + noise.clamp(-cfg.noise_clip, cfg.noise_clip)).clamp(-1.0, 1.0)
             target = self._td_target(batch, self.critic_targ(batch.next_obs, next_a).min(dim=0).values)
         critic_loss, q = self._critic_step(batch, target)

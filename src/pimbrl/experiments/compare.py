@@ -9,9 +9,9 @@ Every run's configuration is resolved here, as a :class:`~pimbrl.training.TrainC
 starts. A new run's child process gets it as a file, ``DIR/<method>/seed<k>/config.request.json``
 (``pimbrl train --config FILE``); the run's ``config.json`` then records the same configuration.
 
-Overrides common to all runs (``{"total_steps": 5000, "dyna.model_steps": 5}``, the arguments after
-``--`` of ``pimbrl compare``) go to every run they apply to: a ``dyna.*`` override goes to the mbrl and
-pimbrl runs and not to the mfrl ones, an agent field of SAC only to SAC runs, and so on
+Overrides common to all runs (``{"total_steps": 5000, "fit.steps": 5}``, the arguments after
+``--`` of ``pimbrl compare``) go to every run they apply to: a ``fit.*`` override goes to the methods that
+fit a model and not to the mfrl ones, an agent field of SAC only to SAC runs, and so on
 (:func:`~pimbrl.training.config.inapplicable_reason`). An override that applies to none of the runs is an
 error.
 
@@ -46,10 +46,19 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ConfigError, from_dict, to_dict
+from ..config import ConfigError
 from ..fileio import UnsafeFileError, atomic_write_bytes, check_below, open_below
 from ..training.cli_args import parse_train_args
-from ..training.config import TrainConfig, applicable_overrides, did_you_mean, resolve_config, typed_overrides
+from ..training.config import (
+    TrainConfig,
+    applicable_overrides,
+    config_from_dict,
+    config_to_dict,
+    did_you_mean,
+    resolve_config,
+    typed_overrides,
+)
+from ..training.methods import METHODS
 from ..training.rundir import RunDirectory
 
 __all__ = [
@@ -68,7 +77,7 @@ __all__ = [
     "summarize_runs",
 ]
 
-COMPARE_METHODS = ("mfrl", "mbrl", "pimbrl", "mfrl-matched")
+COMPARE_METHODS = (*METHODS, "mfrl-matched")
 #: the file in a new run's directory that hands its configuration to the child process
 REQUEST_FILE = "config.request.json"
 #: the file in a run's directory that takes its child process's output
@@ -122,7 +131,7 @@ def plan_runs(
     specs = []
     used: set[str] = set()
     reasons: dict[str, str] = {}
-    agent = overrides.get("agent", TrainConfig.agent)
+    agent = overrides.get("agent", "td3")
     for label in methods:
         if label not in COMPARE_METHODS:
             raise ValueError(
@@ -145,14 +154,13 @@ def plan_runs(
 
 
 def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"agent.gamma": 0.99, ...}`` from a nested configuration dict."""
+    """``{"agent.gamma": 0.99, "method.fit.steps": 50, ...}`` from a nested configuration dict."""
     out: dict[str, Any] = {}
     for key, value in config.items():
-        name = {"agent_config": "agent"}.get(key, key) if not prefix else key
-        if isinstance(value, dict) and key in ("agent_config", "dyna"):
-            out.update(_flat(value, f"{prefix}{name}."))
+        if isinstance(value, dict) and key != "env_kwargs" and key not in ("prior", "coefficients"):
+            out.update(_flat(value, f"{prefix}{key}."))
         else:
-            out[f"{prefix}{name}"] = value
+            out[f"{prefix}{key}"] = value
     return out
 
 
@@ -163,10 +171,10 @@ def config_differences(recorded: Any, requested: TrainConfig) -> list[str]:
     ``"total_steps (300 there, 200 requested)"``. A configuration that cannot be read is one difference.
     """
     try:
-        there = _flat(json.loads(json.dumps(to_dict(from_dict(TrainConfig, dict(recorded))))))
+        there = _flat(json.loads(json.dumps(config_to_dict(config_from_dict(dict(recorded))))))
     except (ConfigError, TypeError, ValueError):
         return ["the recorded configuration (unreadable)"]
-    wanted = _flat(json.loads(json.dumps(to_dict(requested))))
+    wanted = _flat(json.loads(json.dumps(config_to_dict(requested))))
     return [f"{k} ({there.get(k)!r} there, {wanted.get(k)!r} requested)" for k in wanted if there.get(k) != wanted.get(k)]
 
 
@@ -353,7 +361,7 @@ def run_all(
             continue
         if run_status is None:
             request = Path(spec.path) / REQUEST_FILE
-            atomic_write_bytes(request, (json.dumps(to_dict(spec.config), indent=2) + "\n").encode())
+            atomic_write_bytes(request, (json.dumps(config_to_dict(spec.config), indent=2) + "\n").encode())
             cmd = [
                 sys.executable,
                 "-m",
@@ -589,7 +597,7 @@ def compare(
     ``rerun``, moved aside and trained again (:func:`check_reuse`). ``status``: live status lines of the
     running children on stderr.
 
-    ``overrides``: field paths -> values (``{"total_steps": 5000, "dyna.model_steps": 5}``; a list of
+    ``overrides``: field paths -> values (``{"total_steps": 5000, "fit.steps": 5}``; a list of
     `pimbrl train` flags is read as such), applied to the runs they fit (see :func:`plan_runs`).
     ``threshold`` is the return the summaries count as solved (default: the preset's); to also record it
     in the runs' configurations, add it to ``overrides``.

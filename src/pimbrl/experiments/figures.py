@@ -29,6 +29,7 @@ from ..fileio import MAX_CSV_BYTES, MAX_JSON_BYTES, UnsafeFileError, read_below,
 from ..plotting import plot_spacetime, plt, save_figure
 from ..simulate import EpisodeRecord, run_episode
 from ..training import Run
+from ..training.legacy import method_and_agent
 
 __all__ = ["burgers_episodes", "check_fits", "ks_contours", "load_run", "model_error_histograms", "rollout_snapshots"]
 
@@ -49,21 +50,21 @@ def check_fits(kind: str, run_dir: str | Path) -> None:
     """Raise ``ValueError`` where the figure ``kind`` cannot be drawn from the run in ``run_dir``.
 
     Read from its ``config.json`` before anything is loaded: ``ks-contours`` needs a KS run, ``burgers`` a
-    Burgers run, ``rollouts`` an mbrl or pimbrl run. The message names the run's environment and method and
+    Burgers run, ``rollouts`` a run with a model. The message names the run's environment and method and
     the figure that fits it.
     """
     run = training.RunDirectory(run_dir)
     run.check_entries()
     cfg = run.recorded_config()
-    env, method = cfg.get("env"), cfg.get("method")
+    env, (method, _) = cfg.get("env"), method_and_agent(cfg)
     if kind in _FIGURE_ENVS:
         want, name = _FIGURE_ENVS[kind]
         if env != want:
             other = [k for k, (e, _) in _FIGURE_ENVS.items() if e == env]
             hint = f"; `pimbrl figure {other[0]}` draws that one" if other else ""
             raise ValueError(f"`pimbrl figure {kind}` needs a {name} run; {run_dir} is a {env} run{hint}")
-    if kind == "rollouts" and method not in ("mbrl", "pimbrl"):
-        raise ValueError(f"`pimbrl figure rollouts` needs an mbrl or pimbrl run; {run_dir} is a {method} run, without a model")
+    if kind == "rollouts" and method == "mfrl":
+        raise ValueError(f"`pimbrl figure rollouts` needs a run with a model (mbrl, pimbrl, ...); {run_dir} is an mfrl run")
 
 
 def _policy(trainer: Any) -> Any:
@@ -104,7 +105,7 @@ def ks_contours(run_dir: str | Path, out: str | Path, controlled: int = 3) -> Pa
     fig, axes = plt.subplots(len(records), 1, figsize=(10, 2.6 * len(records)), sharex=True)
     for ax, (name, rec) in zip(axes, records):
         plot_spacetime(ax, rec.states, physics.x, rec.control_dt, title=f"{name}: return {rec.total_return:.1f}", vlim=lim)
-    fig.suptitle(f"{trainer.cfg.method} {trainer.cfg.agent}, step {trainer.t:,d}")
+    fig.suptitle(f"{trainer.cfg.method.name} {trainer.cfg.agent.name}, step {trainer.t:,d}")
     fig.tight_layout()
     return save_figure(fig, out)
 
@@ -182,12 +183,12 @@ def rollout_snapshots(run_dir: str | Path, out: str | Path, lengths: Sequence[in
     trainer = load_run(run_dir)
     model = trainer.transition_model
     if model is None or trainer.model is None:
-        raise ValueError(f"{run_dir} is a {trainer.cfg.method} run without a model; use an mbrl or pimbrl run")
+        raise ValueError(f"{run_dir} is a {trainer.cfg.method.name} run without a model; use a run of a method with one")
     if trainer.model.trainer.steps == 0 and trainer.model.trainer.optimizer is not None:  # a physics model: no training
-        start = trainer.cfg.dyna.start_model_after
+        start = trainer.cfg.dyna.start_after
         raise ValueError(
             f"{run_dir}: its model was never trained (the run has {trainer.t:,d} steps and its model starts after "
-            f"dyna.start_model_after = {start}); train a run with more --steps or a lower --dyna.start-model-after"
+            f"model.start_after = {start}); train a run with more --steps or a lower --model.start-after"
         )
     physics = trainer.physics
     task = trainer.task
@@ -220,6 +221,6 @@ def rollout_snapshots(run_dir: str | Path, out: str | Path, lengths: Sequence[in
             if i == n_states - 1:
                 ax.set_xlabel("x")
     axes[0, 0].legend(fontsize=8)
-    fig.suptitle(f"model rollouts vs the true environment ({trainer.cfg.method}, step {trainer.t:,d})")
+    fig.suptitle(f"model rollouts vs the true environment ({trainer.cfg.method.name}, step {trainer.t:,d})")
     fig.tight_layout()
     return save_figure(fig, out)

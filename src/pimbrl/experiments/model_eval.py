@@ -5,9 +5,9 @@
 2. Collect ``test_transitions`` transitions from *another* distribution (out-of-sample, per environment:
    declared by each system: :attr:`pimbrl.systems.System.out_of_sample`).
 3. Train two models from the same initialisation for the same number of gradient steps: ``data`` with
-   ``L_D`` only; ``physics`` with ``L_D + w_E L_E``, where ``L_E`` is applied to unlabelled pairs: the
-   training states with fresh random actions, and states the model itself imagines from them (short
-   rollouts, refreshed during training), as PiMBRL does with its imagined buffer.
+   ``L_D`` only; ``physics`` with ``L_D + w_E L_E``, where ``L_E`` is applied to unlabelled pairs drawn as a
+   PiMBRL run draws them (:func:`study_pairs`: the same sampler, sources and imagination, with the random
+   policy that collected the data).
 4. Write ``model_errors.csv`` (``model, split, mse``: one row per test transition), ``summary.json`` and
    ``model_errors.png`` (histograms of log10 MSE, in- and out-of-sample).
 """
@@ -28,12 +28,24 @@ import torch
 from ..config import validate
 from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
-from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
+from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.residual import Scheme
+from ..models.state_sources import PhysicsPairs, choose_sources
+from ..physics import Physics
+from ..spaces import ActionAdapter
 from ..systems import get_system
-from .model_eval_config import ModelEvalConfig, defaults
+from ..training.methods import PhysicsLoss
+from .model_eval_config import PHYSICS_FLAGS, ModelEvalConfig, defaults
 
-__all__ = ["ModelEvalConfig", "collect_transitions", "out_of_sample", "run_model_eval"]
+__all__ = [
+    "ModelEvalConfig",
+    "check_physics_settings",
+    "collect_transitions",
+    "network_of",
+    "out_of_sample",
+    "run_model_eval",
+    "study_pairs",
+]
 
 
 def out_of_sample(env_id: str) -> Callable[[Task, np.random.Generator, int], np.ndarray]:
@@ -88,25 +100,71 @@ def collect_transitions(
     return TransitionData(cat([canonical(s) for s in states]), cat(actions), cat([canonical(s) for s in nexts]))
 
 
-def _imagined_states(
-    model: TransitionModel, task: Task, seeds: TransitionData, length: int, rng: np.random.Generator
-) -> torch.Tensor:
-    """States the model reaches from ``seeds`` in up to ``length`` steps under random actions."""
-    out = [seeds.state]
-    u = seeds.state
-    with torch.no_grad():
-        for _ in range(length):
-            a = torch.as_tensor(task.physical_action(_random_env_actions(task, rng, len(u)), len(u)), dtype=torch.float32)
-            u = model.predict_next(u, a)
-            keep = torch.as_tensor(~task.physics.diverged(u.double().numpy()))
-            u = u[keep]
-            out.append(u)
-    return torch.cat(out)
+def _random_actions(task: Task, rng: np.random.Generator, n: int) -> torch.Tensor:
+    """``n`` physical actions of the uniformly random policy."""
+    return torch.as_tensor(task.physical_action(_random_env_actions(task, rng, n), n), dtype=torch.float32)
 
 
-def _unlabelled(states: torch.Tensor, task: Task, rng: np.random.Generator) -> TransitionData:
-    a = task.physical_action(_random_env_actions(task, rng, len(states)), len(states))
-    return TransitionData(states, torch.as_tensor(a, dtype=torch.float32))
+def study_pairs(
+    task: Task,
+    physics: Physics,
+    model: TransitionModel,
+    sources: tuple[str, ...],
+    observed: torch.Tensor,
+    length: int,
+    rng: np.random.Generator,
+) -> tuple[PhysicsPairs, Callable[[], None]]:
+    """The physics loss's pairs for a model trained on collected data, drawn as the training loop draws them.
+
+    The same sampler (:class:`~pimbrl.models.state_sources.PhysicsPairs`) and the same imagination
+    (:class:`~pimbrl.models.ModelEnv`) as a PiMBRL run; the policy is the uniformly random one that collected
+    the data. ``policy``: observed states with random actions; ``imagined``: the pairs of ``length``-step
+    model rollouts from the observed states (made again by the returned function, as the model changes);
+    the broad sources from the observed states. Returns the sampler and that refresh function.
+    """
+    adapter = ActionAdapter(task.action_space)
+    imagination = ModelEnv(model, task, adapter, rng, use_path=False, physics=physics)
+    pool: dict[str, torch.Tensor] = {"state": observed[:0], "action": torch.zeros(0, physics.action_dim)}
+
+    def refresh() -> None:
+        if "imagined" not in sources or length < 1:
+            return
+        start = observed.double().numpy()
+        policy = lambda obs: rng.uniform(-1.0, 1.0, size=(len(obs), adapter.dim)).astype(np.float32)
+        batch = imagination.rollout(start, np.zeros(len(start), dtype=np.int64), policy, length)
+        pool["state"] = torch.as_tensor(batch.state, dtype=torch.float32)
+        pool["action"] = torch.as_tensor(batch.physical_action, dtype=torch.float32)
+
+    pairs = PhysicsPairs(
+        physics,
+        sources,
+        lambda rows: observed.index_select(0, rows),
+        len(observed),
+        lambda rows, g: _random_actions(task, g, len(rows)),
+        lambda: len(pool["state"]),
+        lambda rows: (pool["state"].index_select(0, rows), pool["action"].index_select(0, rows)),
+        rng,
+    )
+    return pairs, refresh
+
+
+def network_of(cfg: ModelEvalConfig, physics: Physics) -> str:
+    """The network model-eval trains: ``cfg.network``, with ``auto`` the paper's (ConvLSTM for a PDE, an MLP for an ODE)."""
+    if cfg.network == "auto":
+        return "convlstm" if physics.is_field else "mlp"
+    if (cfg.network == "mlp") == bool(physics.is_field):
+        kind = "a PDE" if physics.is_field else "an ODE"
+        raise ValueError(f"--network {cfg.network} is not a network for {kind}: use auto (the paper's)")
+    return cfg.network
+
+
+def check_physics_settings(cfg: ModelEvalConfig) -> None:
+    """A one-line error for a physics-loss setting that model-eval does not read (it has no training schedule)."""
+    default = PhysicsLoss()
+    for f in dataclasses.fields(PhysicsLoss):
+        if f.name not in PHYSICS_FLAGS and getattr(cfg.physics, f.name) != getattr(default, f.name):
+            flag = f"--physics.{f.name.replace('_', '-')}"
+            raise ValueError(f"{flag} sets when a training run's physics loss starts; model-eval uses it from the first step")
 
 
 def run_model_eval(
@@ -115,6 +173,7 @@ def run_model_eval(
     """Run the comparison for ``env_id`` and write its outputs into ``run_dir``; returns the summary."""
     cfg = config or ModelEvalConfig(**defaults(env_id))
     validate(cfg)
+    check_physics_settings(cfg)
     oos = out_of_sample(env_id)
     torch.set_num_threads(cfg.threads)
     out_dir = Path(run_dir)
@@ -134,21 +193,24 @@ def run_model_eval(
 
     models = {}
     summary: dict[str, Any] = {"env": env_id, "config": dataclasses.asdict(cfg), "train_s": {}}
+    sources = choose_sources(cfg.physics.sources, physics)
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
-        model = make_model(physics, n_intermediate=cfg.n_intermediate)
-        residual = PhysicsResidual(physics, model.n_intermediate, _scheme(cfg.scheme)) if name == "physics" else None
-        trainer = ModelTrainer(model, residual, lr=cfg.lr, weight_physics=cfg.physics_weight)
+        model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=network_of(cfg, physics))
+        scheme = _scheme(cfg.scheme)
+        residual = PhysicsResidual(physics, model.n_intermediate, scheme, cfg.physics.units) if name == "physics" else None
+        trainer = ModelTrainer(model, residual, lr=cfg.lr, weight_physics=cfg.physics.weight)
         trainer.ensure_normalization(train)
         batch_rng = np.random.default_rng(cfg.seed + 1)
         start = time.perf_counter()
-        unlabelled = None
+        unlabelled, refresh = None, None
+        if residual is not None:
+            unlabelled, refresh = study_pairs(task, physics, model, sources, train.state, cfg.imagined_length, batch_rng)
         done = 0
         while done < cfg.steps:
             chunk = min(cfg.refresh_every, cfg.steps - done)
-            if residual is not None:
-                seeds = train.sample(min(len(train), 1024), batch_rng)
-                unlabelled = _unlabelled(_imagined_states(model, task, seeds, cfg.imagined_length, batch_rng), task, batch_rng)
+            if refresh is not None:
+                refresh()
             metrics = trainer.fit(chunk, cfg.batch_size, batch_rng, labelled=train, unlabelled=unlabelled)
             done += chunk
             log(f"  {name:7s} step {done:5d}: " + ", ".join(f"{k} {v:.3e}" for k, v in metrics.items()))
@@ -173,7 +235,7 @@ def run_model_eval(
     for split in ("in", "out"):
         d, p = summary[f"data_{split}"], summary[f"physics_{split}"]
         log(
-            f"  {split:3s}-sample MSE  data-only: mean {d['mean']:.3e} median {d['median']:.3e}   "
+            f"  {split + '-sample':14s} MSE  data-only: mean {d['mean']:.3e} median {d['median']:.3e}   "
             f"physics-informed: mean {p['mean']:.3e} median {p['median']:.3e}"
         )
     return summary

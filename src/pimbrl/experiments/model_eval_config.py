@@ -1,13 +1,20 @@
-"""Settings of `pimbrl model-eval`: plain data, importable without torch (for the command line's flags)."""
+"""Settings of `pimbrl model-eval`: plain data, importable without torch (for the command line's flags).
+
+The physics loss is the training's own :class:`~pimbrl.training.methods.PhysicsLoss` (``--physics.weight``,
+``--physics.sources``, ``--physics.units``), with its defaults: a model-eval run measures the physics loss a
+PiMBRL run trains with.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 from ..config import MAX_BATCH, MAX_LR, MAX_SEED, MAX_STEPS, MAX_TRANSITIONS, at_most, non_negative, one_of, param, positive
+from ..training.methods import NETWORKS, PhysicsLoss
 
-__all__ = ["ModelEvalConfig", "defaults"]
+__all__ = ["PHYSICS_FLAGS", "ModelEvalConfig", "defaults"]
 
 
 @dataclass(frozen=True)
@@ -29,7 +36,6 @@ class ModelEvalConfig:
     scheme: str = param(
         "etd", "PDE residual scheme: etd or solver", (lambda v: v in ("etd", "solver"), "must be 'etd' or 'solver'")
     )
-    physics_weight: float = param(1.0, "w_E, weight of the physics loss", [non_negative(), at_most(1e6)])
     imagined_length: int = param(
         3, "length of the imagined rollouts that supply unlabelled states", [non_negative(), at_most(10_000)]
     )
@@ -46,24 +52,24 @@ class ModelEvalConfig:
     seed_states: int = param(
         500, "study: observed states the physics loss may start from without labels", [positive(), at_most(MAX_TRANSITIONS)]
     )
-    sources: str = param("train,imagined", "physics-loss sources: train, imagined, symmetry, scaled, noise, box")
-    units: str = param("substep", "units of the physics loss: substep or step", one_of("substep", "step"))
-    model: str = param("convlstm", "PDE model: convlstm or equivariant", one_of("convlstm", "equivariant"))
+    network: str = param(
+        "auto", "the network: convlstm or equivariant for a PDE, mlp for an ODE; auto: the paper's", one_of(*NETWORKS)
+    )
     models: str = param(
         "",
         "study: the models to compare, comma-separated (default: all of data, physics, physics-true, "
         "physics-learned, physics-only, physics-only-learned that the study has)",
     )
-    env_coefficients: str = param(
-        "", "study: the environment's physical coefficients where they differ from the paper's, e.g. nu=0.013"
+    env_coefficients: dict[str, float] = param(
+        {}, "study: the environment's physical coefficients where they differ from the paper's (--env-coefficients nu=0.013)"
     )
-    physics_prior: str = param(
-        "",
-        "study: coefficients of the physics loss's prior where they differ from the environment's, e.g. nu=0.01 "
-        "(adds the model physics-true, trained with the environment's own)",
+    physics_prior: dict[str, float] = param(
+        {},
+        "study: coefficients of the physics loss's prior where they differ from the environment's (--physics-prior "
+        "nu=0.01; adds the model physics-true, trained with the environment's own)",
     )
-    learn_coefficients: str = param(
-        "", "study: coefficients fitted to the labels from the prior, e.g. nu (adds the model physics-learned)"
+    learn_coefficients: dict[str, Any] = param(
+        {}, "study: coefficients fitted to the labels from the prior (--learn-coefficients nu; adds the model physics-learned)"
     )
     coefficient_lr: float = param(1e-2, "study: Adam learning rate of the learned coefficients", [positive(), at_most(MAX_LR)])
     rollout_lengths: tuple[int, ...] = param(
@@ -71,6 +77,13 @@ class ModelEvalConfig:
         "study: chained model steps at which the error is measured, e.g. 1,3,8",
         (lambda v: len(v) > 0 and all(1 <= n <= 10_000 for n in v), "must be numbers in [1, 10,000]"),
     )
+    physics: PhysicsLoss = dataclasses.field(
+        default_factory=PhysicsLoss, metadata={"help": "the physics loss (--physics.*), as in training", "prefix": "physics"}
+    )
+
+
+#: the physics-loss settings that model-eval reads (the schedule of a training run has no meaning here)
+PHYSICS_FLAGS = ("weight", "units", "sources")
 
 
 def defaults(env_id: str) -> dict[str, Any]:

@@ -6,10 +6,12 @@ are *observed* (the physics loss may start from them without labels). Train from
 initialisation, for the same number of gradient steps:
 
 * ``data``: ``L_D`` on the ``L`` labelled transitions (none for ``L = 0``: the no-change prediction);
-* ``physics``: ``L_D`` on the same labels plus ``w_E L_E`` on unlabelled state-action pairs from the
-  configured sources (:mod:`pimbrl.models.state_sources`; ``train`` = the observed states with random
-  actions; ``imagined`` = states the model itself reaches from them). With ``L = 0`` its normalisation
-  comes from the equation (the coarse scheme's increments), not from labels.
+* ``physics``: ``L_D`` on the same labels plus ``w_E L_E`` on unlabelled state-action pairs, drawn as a
+  PiMBRL run draws them (:func:`pimbrl.experiments.model_eval.study_pairs`; the physics loss's settings and
+  defaults are the training's, ``--physics.*``): ``policy`` = the observed states with the random policy's
+  actions, ``imagined`` = the pairs of short model rollouts from them, and the broad sources of
+  :mod:`pimbrl.models.state_sources`. With ``L = 0`` its normalisation comes from the equation (the coarse
+  scheme's increments), not from labels.
 
 With a physics prior that differs from the environment (``env_coefficients``, ``physics_prior``) the
 ``physics`` model is held to the wrong prior; ``physics-true`` is trained with the environment's own
@@ -32,85 +34,31 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from ..config import parse_learned, parse_prior
 from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.coefficients import LearnedCoefficients
 from ..models.residual import Scheme
-from ..models.state_sources import available_sources, broad_actions, broad_pairs, even_shares
+from ..models.state_sources import broad_actions, choose_sources
 from ..physics import Physics
-from .model_eval import ModelEvalConfig, _imagined_states, _random_env_actions, _unlabelled, collect_transitions, out_of_sample
+from .model_eval import (
+    ModelEvalConfig,
+    _random_env_actions,
+    check_physics_settings,
+    collect_transitions,
+    network_of,
+    out_of_sample,
+    study_pairs,
+)
 
-__all__ = ["STUDY_SOURCES", "PhysicsPairs", "run_model_study"]
-
-#: physics-loss sources of the study: ``train`` and ``imagined`` plus the broad sources
-STUDY_SOURCES = ("train", "imagined", "symmetry", "scaled", "noise", "box")
-
-
-class PhysicsPairs:
-    """Unlabelled pairs for the physics loss, split evenly over ``sources``, seeded by observed states."""
-
-    def __init__(
-        self,
-        task: Task,
-        model: TransitionModel,
-        sources: Sequence[str],
-        seeds: torch.Tensor,
-        imagined_length: int,
-        rng: np.random.Generator,
-        physics: Physics | None = None,
-    ) -> None:
-        self.task = task
-        self.physics = task.physics if physics is None else physics
-        self.model = model
-        self.sources = tuple(sources)
-        self.seeds = seeds
-        self.length = imagined_length
-        self._imagined = seeds
-        self.refresh(rng)
-
-    def refresh(self, rng: np.random.Generator) -> None:
-        """Recompute the states the model imagines from the seeds (source ``imagined``)."""
-        if "imagined" in self.sources:
-            self._imagined = _imagined_states(self.model, self.task, TransitionData(self.seeds, self.seeds[:0]), self.length, rng)
-
-    def __len__(self) -> int:
-        return len(self.seeds)
-
-    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
-        """``batch`` pairs, an equal share from each source."""
-        states, actions = [], []
-        for source, n in zip(self.sources, even_shares(batch, len(self.sources)), strict=True):
-            if n == 0:
-                continue
-            if source in ("train", "imagined"):  # observed or imagined states with random actions
-                pool = self.seeds if source == "train" else self._imagined
-                pairs = _unlabelled(pool.index_select(0, torch.from_numpy(rng.integers(0, len(pool), size=n))), self.task, rng)
-                states.append(pairs.state)
-                actions.append(pairs.action)
-            else:
-                state, action = broad_pairs(self.physics, source, self.seeds, n, rng)
-                states.append(state)
-                actions.append(action)
-        return TransitionData(torch.cat(states), torch.cat(actions))
-
-
-def _check_sources(sources: Sequence[str], task: Task) -> tuple[str, ...]:
-    have = ("train", "imagined", *(s for s in available_sources(task.physics) if s not in ("policy", "imagined")))
-    bad = [s for s in sources if s not in have]
-    if bad or not sources:
-        raise ValueError(
-            f"physics sources {bad or '(none)'} are not available for {task.physics.name}; choose from {', '.join(have)}"
-        )
-    return tuple(sources)
+__all__ = ["run_model_study"]
 
 
 def _rollout_mse(model: TransitionModel | None, data: list[TransitionData], horizon: int, task: Task) -> np.ndarray:
@@ -156,17 +104,18 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     from ..config import validate
 
     validate(cfg)
+    check_physics_settings(cfg)
     torch.set_num_threads(cfg.threads)
     oos = out_of_sample(env_id)
-    env_kwargs: dict[str, Any] = dict(parse_prior(cfg.env_coefficients))
+    env_kwargs: dict[str, Any] = dict(cfg.env_coefficients)
     env = gym.make(env_id, **env_kwargs)
     if not isinstance(env.unwrapped, PhysicsEnv):
         raise ValueError(f"model-eval needs a pimbrl environment (a PhysicsEnv, whose task and physics it reads), not {env_id!r}")
     task = env.unwrapped.task
-    prior = task.physics.with_coefficients(**parse_prior(cfg.physics_prior))
-    learned = parse_learned(cfg.learn_coefficients)
+    prior = task.physics.with_coefficients(**cfg.physics_prior)
+    learned = {name: None if r is None else (float(r[0]), float(r[1])) for name, r in cfg.learn_coefficients.items()}
     if learned:  # every problem now, before any model is trained
-        leaked = [n for n in learned if n in env_kwargs and n not in parse_prior(cfg.physics_prior)]
+        leaked = [n for n in learned if n in env_kwargs and n not in cfg.physics_prior]
         if leaked:
             raise ValueError(
                 f"learn_coefficients: {leaked[0]} would start from the environment's true value; "
@@ -192,7 +141,7 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
             raise ValueError(f"models: {', '.join(unknown)} not in this study; choose from {', '.join(names)}")
         names = [m for m in names if m in chosen]
     identified: list[dict[str, Any]] = []
-    sources = _check_sources([s.strip() for s in cfg.sources.split(",") if s.strip()], task)
+    sources = choose_sources(cfg.physics.sources, prior)
     labels = sorted(set(cfg.labels))
     horizons = sorted(set((1, *cfg.rollout_lengths)))
     out_dir = Path(run_dir)
@@ -254,8 +203,8 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     payload = {
         "env": env_id,
         "sources": sources,
-        "units": cfg.units,
-        "model_kind": cfg.model,
+        "units": cfg.physics.units,
+        "model_kind": network_of(cfg, prior),
         "env_coefficients": task.physics.coefficient_values(),
         "physics_prior": prior.coefficient_values(),
         "learned": list(learned),
@@ -307,16 +256,16 @@ def _train(
     Returns the model and the learned coefficients' identified values (empty where none is learned).
     """
     torch.manual_seed(seed)
-    model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=cfg.model)
+    model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=network_of(cfg, physics))
     scheme = _scheme_of(cfg)
     residual = PhysicsResidual(
-        physics, model.n_intermediate, scheme, cfg.units, learned=learned if labelled is not None else None
+        physics, model.n_intermediate, scheme, cfg.physics.units, learned=learned if labelled is not None else None
     )
     trainer = ModelTrainer(
         model,
         residual if name != "data" else None,
         lr=cfg.lr,
-        weight_physics=cfg.physics_weight,
+        weight_physics=cfg.physics.weight,
         coefficient_lr=cfg.coefficient_lr,
     )
     rng = np.random.default_rng(seed + 1)
@@ -327,12 +276,14 @@ def _train(
         with torch.no_grad():
             nxt = residual.rollout(observed.double(), a.double())[:, -1].float()
         model.fit_normalization(observed, nxt)
-    pairs = PhysicsPairs(task, model, sources, observed, cfg.imagined_length, rng, physics) if name != "data" else None
+    pairs, refresh = None, None
+    if name != "data":
+        pairs, refresh = study_pairs(task, physics, model, sources, observed, cfg.imagined_length, rng)
     done = 0
     while done < cfg.steps:
         chunk = min(cfg.refresh_every, cfg.steps - done)
-        if pairs is not None and done:
-            pairs.refresh(rng)
+        if refresh is not None:
+            refresh()
         trainer.fit(chunk, cfg.batch_size, rng, labelled=labelled, unlabelled=pairs)
         done += chunk
     return model, ({} if trainer.coefficients is None else trainer.coefficients.current())

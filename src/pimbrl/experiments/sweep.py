@@ -235,7 +235,7 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
             params = tuple(zip(keys, values))
             setting = ",".join(f"{k}={v}" for k, v in params) or "default"
             swept = typed_overrides(dict(params))
-            agent = swept.get("agent", fixed.get("agent", TrainConfig.agent))
+            agent = swept.get("agent", fixed.get("agent", "td3"))
             fields = dict(swept)
             applied = applicable_overrides(env_id, method, agent, fixed, reasons)
             fields.update(applied)

@@ -16,23 +16,26 @@ source         states (actions: uniform over the physical action box, or bang-ba
 ``box``        states uniform over the physics' admissible box (ODEs: e.g. Cart-Pole's termination box)
 =============  ==========================================================================================
 
-``policy`` (real states with the policy's actions) and ``imagined`` (pairs of the imagined buffer) are
-the two sources the training loop itself holds; :data:`BROAD_SOURCES` are the ones made here.
+``policy`` (observed states with the policy's actions) and ``imagined`` (pairs the model imagined) are the
+two sources the training loop itself holds; :data:`BROAD_SOURCES` are the ones made here.
+:class:`PhysicsPairs` draws from all of them, for the training loop and for the model study alike.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
 
 from ..physics import Physics
+from .trainer import TransitionData
 
 __all__ = [
     "BROAD_SOURCES",
     "LOOP_SOURCES",
     "SOURCES",
+    "PhysicsPairs",
     "available_sources",
     "broad_actions",
     "broad_pairs",
@@ -115,17 +118,86 @@ def _smooth_noise(dim: int, n: int, rng: np.random.Generator, modes: int = 6) ->
     return torch.as_tensor(field)
 
 
-def parse_sources(text: str | Sequence[str], physics: Physics) -> tuple[str, ...]:
-    """Validate a source list (``"policy,symmetry"`` or a sequence) against what ``physics`` offers.
+def choose_sources(sources: Sequence[str], physics: Physics) -> tuple[str, ...]:
+    """The physics-loss sources ``sources`` checked against what ``physics`` offers; empty: all it offers.
 
-    ``"auto"`` is every source ``physics`` offers: the loop's two plus ``symmetry, scaled, noise`` for the
-    PDEs and ``box`` for the ODEs.
+    All it offers: the loop's two (``policy``, ``imagined``) plus ``symmetry, scaled, noise`` for the PDEs
+    and ``box`` for the ODEs.
     """
-    if text == "auto":
-        return available_sources(physics)
-    names = tuple(s.strip() for s in (text.split(",") if isinstance(text, str) else text) if s.strip())
     have = available_sources(physics)
-    bad = [s for s in names if s not in have]
-    if bad or not names:
-        raise ValueError(f"physics sources {bad or '(none)'} are not available for {physics.name}; choose from {', '.join(have)}")
-    return names
+    if not sources:
+        return have
+    bad = [s for s in sources if s not in have]
+    if bad:
+        raise ValueError(f"physics sources {bad} are not available for {physics.name}; choose from {', '.join(have)}")
+    return tuple(sources)
+
+
+class PhysicsPairs:
+    """Unlabelled state-action pairs for the physics loss, an equal share per source: the model phase's sampler.
+
+    Configuration-free: what differs between the training loop and the model study is given as functions.
+
+    Args:
+        physics: the physics the run believes (its prior), which the broad sources consult.
+        sources: the sources to draw from (:func:`choose_sources`).
+        states: ``rows -> (len(rows), n)`` observed training states (``n_observed`` of them).
+        n_observed: how many observed states there are.
+        actions: ``(rows, rng) -> (len(rows), m)`` physical actions at those observed states: the training
+            loop's current policy (with its exploration noise), the study's uniformly random one.
+        n_imagined: ``() -> int`` how many imagined pairs there are now (the loop's imagined buffer, the study's
+            model rollouts); while there are none, the ``imagined`` share goes to the other sources (to
+            ``policy`` when it is the only one).
+        imagined: ``rows -> (states, actions)`` those imagined pairs.
+        rng: draws the policy's actions and the broad sources' seeds and states (the rows and the imagined
+            pairs are drawn from the generator given to :meth:`sample`; the training loop gives the same one).
+    """
+
+    def __init__(
+        self,
+        physics: Physics,
+        sources: Sequence[str],
+        states: Callable[[torch.Tensor], torch.Tensor],
+        n_observed: int,
+        actions: Callable[[torch.Tensor, np.random.Generator], torch.Tensor],
+        n_imagined: Callable[[], int],
+        imagined: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+        rng: np.random.Generator,
+    ) -> None:
+        self.physics = physics
+        self.sources = tuple(sources)
+        self.states = states
+        self.n_observed = int(n_observed)
+        self.actions = actions
+        self.n_imagined = n_imagined
+        self.imagined = imagined
+        self.rng = rng
+
+    def __len__(self) -> int:
+        return self.n_observed + self.n_imagined()
+
+    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
+        """``batch`` unlabelled pairs, an equal share per source (rows and imagined pairs drawn from ``rng``)."""
+        n_imagined = self.n_imagined() if "imagined" in self.sources else 0
+        sources = [s for s in self.sources if s != "imagined" or n_imagined] or ["policy"]
+        states: list[torch.Tensor] = []
+        acts: list[torch.Tensor] = []
+        for source, n in zip(sources, even_shares(batch, len(sources)), strict=True):
+            if n == 0:
+                continue
+            if source == "policy":
+                rows = torch.from_numpy(rng.integers(0, self.n_observed, size=n))
+                acts_now = self.actions(rows, self.rng)
+                states.append(self.states(rows))
+                acts.append(acts_now)
+            elif source == "imagined":
+                pair = self.imagined(torch.from_numpy(rng.integers(0, n_imagined, size=n)))
+                states.append(pair[0])
+                acts.append(pair[1])
+            else:  # broad_states draws n seeds among those it is given: gather just n rows (none for the box)
+                rows = torch.from_numpy(self.rng.integers(0, self.n_observed, size=n))
+                seeds = self.states(rows if source != "box" else rows[:1])
+                pair = broad_pairs(self.physics, source, seeds, n, self.rng)
+                states.append(pair[0])
+                acts.append(pair[1])
+        return TransitionData(torch.cat(states), torch.cat(acts))

@@ -11,6 +11,7 @@ blows up in the first control step.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, overload
 
 import numpy as np
@@ -301,28 +302,14 @@ def large_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     return 2.0 * task.initial_state(c)  # type: ignore[attr-defined]  # BurgersTask
 
 
-#: the declaration: preset (Table 2 for the model-based methods, with the changes listed in
-#: docs/methods.md), out-of-sample set and model-study settings
+#: the declaration: recipes in burgers.yaml beside this file, out-of-sample set and model-study settings
 SYSTEM = System(
     id="pimbrl/Burgers-v0",
     env=BurgersEnv,
     vector_env=BurgersVectorEnv,
     episode_steps=60,
     aliases=("burgers",),
-    preset={
-        "total_steps": 3_000,
-        "warmup_steps": 120,
-        "update_after": 120,
-        "update_every": 60,
-        "eval_every": 120,
-        "threshold": -11.0,  # reached by every tuned MFRL seed, but only after 960-2040 of its 3,000 steps
-        "checkpoint_every": 600,
-        "log_every": 120,
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {"threshold": 1e-2, "rollout_length": 1, "start_model_after": 120, "start_physics_after": 120},
-        },
-    },
+    preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=large_states,
     model_eval={"transitions": 1_200, "steps": 3_000},
 )

@@ -25,6 +25,7 @@ defaults stay Gymnasium's bit for bit.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -291,25 +292,14 @@ def wide_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.uniform(-CARTPOLE_WIDE_BOX, CARTPOLE_WIDE_BOX, (n, 4))
 
 
-#: the declaration: preset (the paper's TD3 table; Table 2 for the model-based methods, with the changes
-#: listed in docs/methods.md), out-of-sample set and model-study settings
+#: the declaration: recipes in cartpole.yaml beside this file, out-of-sample set and model-study settings
 SYSTEM = System(
     id="pimbrl/CartPole-v0",
     env=CartPoleEnv,
     vector_env=CartPoleVectorEnv,
     episode_steps=200,
     aliases=("cartpole",),
-    preset={
-        "total_steps": 15_000,
-        "warmup_steps": 1_000,
-        "update_after": 1_000,
-        "eval_every": 250,
-        "threshold": 200.0,
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {"threshold": 1e-4, "rollout_length": 200, "start_model_after": 800, "start_physics_after": 1_000},
-        },
-    },
+    preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=wide_states,
     model_eval={"transitions": 1_000, "steps": 3_000},
 )

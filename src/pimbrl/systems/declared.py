@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, cast
 
 import numpy as np
@@ -377,7 +378,7 @@ def declare(
     id: str,
     *,
     aliases: tuple[str, ...] = (),
-    preset: Mapping[str, Any] | None = None,
+    preset: Mapping[str, Any] | str | Path | None = None,
     out_of_sample: Callable[[Task, np.random.Generator, int], np.ndarray] | None = None,
     model_eval: Mapping[str, Any] | None = None,
 ) -> System:
@@ -387,7 +388,8 @@ def declare(
         physics_class: a subclass of :class:`ODESystem` or :class:`PeriodicPDESystem`.
         id: its Gymnasium id, ``namespace/Name-v0``.
         aliases: short names for the command line (``pimbrl train duffing``).
-        preset: its training settings (see :class:`System`); without one, a run says so when it starts.
+        preset: its training recipes: the path of a preset file (YAML, :mod:`pimbrl.systems.presets`) or the
+            same structure as a mapping; without one, a run says so when it starts.
         out_of_sample: initial states outside the training distribution for ``pimbrl model-eval``.
         model_eval: settings of ``pimbrl model-eval``.
     """
@@ -405,7 +407,7 @@ def register_task(
     id: str,
     *,
     aliases: tuple[str, ...] = (),
-    preset: Mapping[str, Any] | None = None,
+    preset: Mapping[str, Any] | str | Path | None = None,
     out_of_sample: Callable[..., np.ndarray] | None = None,
     model_eval: Mapping[str, Any] | None = None,
 ) -> System:
@@ -425,8 +427,12 @@ def register_task(
         vector_env=vector,
         episode_steps=int(physics_class.episode_steps),
         aliases=tuple(aliases),
-        preset=dict(preset or {}),
+        preset=preset if isinstance(preset, (str, Path)) else dict(preset or {}),
         out_of_sample=out_of_sample,
         model_eval=dict(model_eval or {}),
     )
+    try:
+        system.recipes()  # a preset that cannot be read is an error here, at import, in one line
+    except ValueError as exc:
+        raise SystemSpecError(str(exc)) from None
     return register(system)

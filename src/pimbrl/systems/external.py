@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -98,7 +99,7 @@ def declare_external(
     id: str,
     *,
     aliases: tuple[str, ...] = (),
-    preset: Mapping[str, Any] | None = None,
+    preset: Mapping[str, Any] | str | Path | None = None,
     out_of_sample: Callable[..., np.ndarray] | None = None,
     check_reward: bool = True,
 ) -> System:

@@ -764,8 +764,7 @@ def forced_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     return u
 
 
-#: the declaration: preset (the paper's TD3 table with gamma 0.977 and 200 test episodes; Table 2 for the
-#: model-based methods, with the changes listed in docs/methods.md), out-of-sample set, model-study settings
+#: the declaration: recipes in ks.yaml beside this file, out-of-sample set and model-study settings
 SYSTEM = System(
     id="pimbrl/KuramotoSivashinsky-v0",
     env=KuramotoSivashinskyEnv,
@@ -773,33 +772,7 @@ SYSTEM = System(
     episode_steps=400,
     aliases=("ks", "kuramoto-sivashinsky"),
     label="KS",
-    preset={
-        "total_steps": 200_000,
-        "warmup_steps": 4_000,
-        "update_after": 4_000,
-        "eval_every": 5_000,
-        "eval_episodes": 200,
-        "threshold": -55.0,
-        "checkpoint_every": 10_000,
-        "agent_config": {"gamma": 0.977},
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {
-                "threshold": 1e-2,
-                "rollout_length": 3,
-                "start_model_after": 6_000,
-                "start_physics_after": 12_000,
-                "model_steps": 10,
-                "finetune_return": -55.0,
-                # the same reward rule for a model with untrained intermediate states (mbrl) as for one with
-                # trained ones (pimbrl), so that the two differ only in the physics
-                "reward_quadrature": "endpoints",
-                # the model study (docs/results.md): data-only, out of sample, 2.3e-5 against 2.7e-3 for the
-                # ConvLSTM at 500 labels; the same model for both methods
-                "model": "equivariant",
-            },
-        },
-    },
+    preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=forced_states,
     model_eval={"transitions": 6_000, "steps": 3_000},
 )

@@ -12,6 +12,7 @@ torque is ``-damping theta_dot``.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -266,25 +267,14 @@ def fast_states(task: Task, rng: np.random.Generator, n: int) -> np.ndarray:
     return np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-max_speed, max_speed, n)], axis=1)
 
 
-#: the declaration: preset (the paper's TD3 table; Table 2 for the model-based methods, with the changes
-#: listed in docs/methods.md), out-of-sample set and model-study settings
+#: the declaration: recipes in pendulum.yaml beside this file, out-of-sample set and model-study settings
 SYSTEM = System(
     id="pimbrl/Pendulum-v0",
     env=PendulumEnv,
     vector_env=PendulumVectorEnv,
     episode_steps=200,
     aliases=("pendulum",),
-    preset={
-        "total_steps": 15_000,
-        "warmup_steps": 1_000,
-        "update_after": 1_000,
-        "eval_every": 500,
-        "threshold": -200.0,
-        "model_based": {
-            "utd": 5.0,
-            "dyna": {"threshold": 1e-2, "rollout_length": 200, "start_model_after": 600, "start_physics_after": 1_000},
-        },
-    },
+    preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=fast_states,
     model_eval={"transitions": 2_000, "steps": 3_000},
 )

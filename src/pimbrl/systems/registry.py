@@ -80,8 +80,9 @@ class System:
         vector_env: the native vector environment's class (``None``: Gymnasium's synchronous vectoriser).
         episode_steps: control steps of an episode (the time limit Gymnasium adds).
         aliases: short names every command accepts for :attr:`id` (lower case, e.g. ``duffing``).
-        preset: training settings of this system: the fields of the training configuration, with a
-            ``model_based`` section applied on top for mbrl and pimbrl (see ``pimbrl.training.config``).
+        preset: this system's named training recipes (``default``, ``paper``, ``best``, ...): the path of a
+            YAML preset file, or the same structure as a mapping (:mod:`pimbrl.systems.presets`); empty:
+            none, and a run says so when it starts.
         out_of_sample: ``f(task, rng, n) -> (n, state_dim)`` initial states outside the training
             distribution, for the model study (``pimbrl model-eval``); ``None``: the study is not offered.
         model_eval: settings of ``pimbrl model-eval`` for this system (fields of ``ModelEvalConfig``).
@@ -94,7 +95,7 @@ class System:
     episode_steps: int
     vector_env: Any = None
     aliases: tuple[str, ...] = ()
-    preset: Mapping[str, Any] = field(default_factory=dict)
+    preset: Mapping[str, Any] | str | Path = field(default_factory=dict)
     out_of_sample: Callable[..., Any] | None = None
     model_eval: Mapping[str, Any] = field(default_factory=dict)
     label: str | None = None
@@ -109,10 +110,18 @@ class System:
             raise SystemSpecError(
                 f"{self.id}: aliases must be a tuple of lower-case names (a-z, 0-9, _ . -), got {self.aliases!r}"
             )
-        if not isinstance(self.preset, Mapping) or not isinstance(self.model_eval, Mapping):
-            raise SystemSpecError(f"{self.id}: preset and model_eval must be mappings of settings")
+        if not isinstance(self.preset, (Mapping, str, Path)):
+            raise SystemSpecError(f"{self.id}: preset must be the path of a preset file or a mapping of recipes")
+        if not isinstance(self.model_eval, Mapping):
+            raise SystemSpecError(f"{self.id}: model_eval must be a mapping of settings")
         if not callable(self.env):
             raise SystemSpecError(f"{self.id}: env must be an environment class (or a callable that makes the env)")
+
+    def recipes(self) -> tuple[str, dict[str, Any]]:
+        """The default recipe's name and the recipes of :attr:`preset` (``("", {})`` without one)."""
+        from .presets import load_presets
+
+        return load_presets(self.preset or None, where=f"{self.id} preset")
 
     @property
     def name(self) -> str:

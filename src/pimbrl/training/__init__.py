@@ -11,11 +11,27 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .collector import Collector
-    from .config import METHODS, POLICIES, DynaConfig, TrainConfig, resolve_config
+    from .config import POLICIES, Experimental, TrainConfig, recipe_of, resolve_config
     from .dyna import PHASES, DynaModel
     from .evaluation import EvalResult, Evaluator
     from .logger import RunLogger
     from .loop import Run, RunSummary, UpdateSchedule, build_run, create_run, open_run, train
+    from .methods import (
+        MBRL,
+        METHODS,
+        MFRL,
+        AccuracyCheck,
+        CoefficientFit,
+        Finetune,
+        Hybrid,
+        IdentifiedScheme,
+        Imagination,
+        KnownScheme,
+        ModelFit,
+        PhysicsLoss,
+        PiHybrid,
+        PiMBRL,
+    )
     from .rundir import RunDirectory, steps_to_threshold
     from .runs import load_run, resume_training, run_training
     from .streams import STREAM_KEYS, RandomStreams
@@ -23,9 +39,22 @@ if TYPE_CHECKING:
 #: public name -> the submodule that defines it
 _WHERE = {
     "Collector": "collector",
-    "METHODS": "config",
-    "preset_of": "config",
-    "DynaConfig": "config",
+    "METHODS": "methods",
+    "MFRL": "methods",
+    "MBRL": "methods",
+    "PiMBRL": "methods",
+    "KnownScheme": "methods",
+    "IdentifiedScheme": "methods",
+    "Hybrid": "methods",
+    "PiHybrid": "methods",
+    "ModelFit": "methods",
+    "AccuracyCheck": "methods",
+    "Imagination": "methods",
+    "Finetune": "methods",
+    "PhysicsLoss": "methods",
+    "CoefficientFit": "methods",
+    "Experimental": "config",
+    "recipe_of": "config",
     "TrainConfig": "config",
     "resolve_config": "config",
     "PHASES": "dyna",
@@ -51,15 +80,28 @@ _WHERE = {
 }
 
 __all__ = [
+    "MBRL",
     "METHODS",
+    "MFRL",
     "PHASES",
     "POLICIES",
     "STREAM_KEYS",
+    "AccuracyCheck",
+    "CoefficientFit",
     "Collector",
-    "DynaConfig",
     "DynaModel",
     "EvalResult",
     "Evaluator",
+    "Experimental",
+    "Finetune",
+    "Hybrid",
+    "IdentifiedScheme",
+    "Imagination",
+    "KnownScheme",
+    "ModelFit",
+    "PhysicsLoss",
+    "PiHybrid",
+    "PiMBRL",
     "RandomStreams",
     "Run",
     "RunDirectory",
@@ -71,7 +113,7 @@ __all__ = [
     "create_run",
     "load_run",
     "open_run",
-    "preset_of",
+    "recipe_of",
     "resolve_config",
     "resume_training",
     "run_training",

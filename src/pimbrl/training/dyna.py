@@ -35,20 +35,19 @@ import torch
 
 from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
-from ..config import PHYSICS_MODEL_KINDS, parse_learned, parse_prior
-from ..envs import VALIDATION_SEED, Task
+from ..envs import Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
 from ..models.residual import Scheme
 from ..models.reward import LearnedReward
-from ..models.state_sources import broad_actions, broad_pairs, broad_states, even_shares, parse_sources
+from ..models.state_sources import PhysicsPairs, broad_actions, broad_states, choose_sources
 from ..physics import Physics
 from ..spaces import ActionAdapter
-from .config import TrainConfig
 from .evaluation import Evaluator
+from .methods import MFRL, CoefficientFit, Method, ModelFit, PhysicsLoss
 from .selection import PolicySelector
 from .streams import RandomStreams
 
-__all__ = ["PHASES", "BufferView", "DynaModel", "UnlabelledPairs", "agent_batch"]
+__all__ = ["PHASES", "BufferView", "DynaModel", "agent_batch"]
 
 #: Timed phases of a run (``time/<phase>_s`` in ``metrics.csv``; the model ones stay 0 for MFRL).
 PHASES = ("env_step", "model_train", "model_check", "imagine", "agent_update", "evaluate", "select", "checkpoint")
@@ -71,60 +70,90 @@ class DynaModel:
     """Model, model trainer, imagination and imagined buffer of a model-based run.
 
     Args:
-        cfg: the run's configuration (``method`` ``mbrl`` or ``pimbrl``; ``cfg.dyna`` for the settings).
+        method: the method's configuration (:mod:`pimbrl.training.methods`: MBRL, PiMBRL, KnownScheme, ...);
+            its parts (``fit``, ``check``, ``imagine``, ``finetune``, ``physics``, ``learn``) set each phase.
         task: the real environment's task (physics, observations, action mapping).
         adapter: maps the agent's normalised actions to environment actions.
         obs_dim: flat observation size (the imagined buffer stores observations).
         streams: the run's random streams.
+        validator: the validation episodes the fine-tuning switch reads (``None``: no switch by return).
+        reset_start_symmetry: experimental: reset starts from images under the equation's symmetries.
     """
 
-    def __init__(self, cfg: TrainConfig, task: Task, adapter: ActionAdapter, obs_dim: int, streams: RandomStreams) -> None:
-        if cfg.method not in ("mbrl", "pimbrl"):
-            raise ValueError(f"DynaModel serves mbrl or pimbrl, not {cfg.method!r}")
-        self.cfg = cfg
+    def __init__(
+        self,
+        method: Method,
+        task: Task,
+        adapter: ActionAdapter,
+        obs_dim: int,
+        streams: RandomStreams,
+        validator: Evaluator | None = None,
+        reset_start_symmetry: bool = False,
+    ) -> None:
+        if isinstance(method, MFRL):
+            raise ValueError("DynaModel serves a method with a model, not mfrl")
+        self.method = m = method
         self.task = task
-        d = cfg.dyna
+        self.fit: ModelFit | None = getattr(m, "fit", None)
+        self.physics_loss: PhysicsLoss | None = getattr(m, "physics", None)
+        learn: CoefficientFit | None = getattr(m, "learn", None)
+        self.reset_start_symmetry = reset_start_symmetry
         # what the run knows of the system: the environment's physics, with the coefficients of the prior
-        self.physics = task.physics.with_coefficients(**parse_prior(d.physics_prior))
+        self.physics = task.physics.with_coefficients(**m.prior)
         self.adapter = adapter
         self.streams = streams
-        scheme: Scheme = "solver" if d.residual == "solver" else "etd"
-        n_states = PhysicsResidual.states_per_step(self.physics, d.n_intermediate)
+        scheme: Scheme = "solver" if getattr(m, "scheme", "etd") == "solver" else "etd"
+        n_states = PhysicsResidual.states_per_step(self.physics, m.n_intermediate)
         residual = (
             PhysicsResidual(
                 self.physics,
                 n_states,
                 scheme,
-                d.residual_units,
-                learned=parse_learned(d.learn_coefficients),
-                correction_penalty=d.correction_penalty,
+                self.physics_loss.units if self.physics_loss is not None else "step",
+                learned=learn.ranges(),
+                correction_penalty=learn.correction_penalty,
             )
-            if cfg.method == "pimbrl"
+            if learn is not None
             else None
         )
         # a model with the physics inside steps the residual's scheme (and follows its learned coefficients)
-        inside = (residual or PhysicsResidual(self.physics, n_states, scheme)) if d.model in PHYSICS_MODEL_KINDS else None
+        kind = m.model_kind
+        inside = (residual or PhysicsResidual(self.physics, n_states, scheme)) if kind in ("physics", "hybrid") else None
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(streams.integer_seed("model_init"))
             self.model = make_model(
-                self.physics, n_intermediate=d.n_intermediate, kind=d.model, scheme=inside, correction_scale=d.correction_scale
+                self.physics,
+                n_intermediate=m.n_intermediate,
+                kind=kind,
+                scheme=inside,
+                correction_scale=getattr(m, "correction_scale", 0.01),
             )
-        self.sources = parse_sources(d.physics_sources, self.physics) if residual is not None else ()
+        self.sources = choose_sources(self.physics_loss.sources, self.physics) if self.physics_loss is not None else ()
+        lr = self.fit.lr if self.fit is not None else ModelFit().lr
         #: the learned reward of a system that declares none (an observed Gymnasium env: pimbrl.systems.observed)
         self.reward_model: LearnedReward | None = None
         if getattr(self.physics, "learned_reward", False):
             seed = streams.integer_seed("model_init") + 1  # its own generator: no stream of the run is drawn from
-            self.reward_model = LearnedReward(self.physics.state_dim, self.physics.action_dim, lr=d.model_lr, seed=seed)
+            self.reward_model = LearnedReward(self.physics.state_dim, self.physics.action_dim, lr=lr, seed=seed)
             self.physics.reward_fn = self.reward_model.predict  # type: ignore[attr-defined]
         self.trainer = ModelTrainer(
-            self.model, residual, lr=d.model_lr, weight_physics=d.physics_weight, coefficient_lr=d.coefficient_lr
+            self.model,
+            residual,
+            lr=lr,
+            weight_physics=self.physics_loss.weight if self.physics_loss is not None else 1.0,
+            coefficient_lr=learn.lr if learn is not None else CoefficientFit().lr,
         )
         #: (step, coefficient values, coefficient loss) after every model phase that fitted them
         self.coefficient_history: list[dict[str, float]] = []
         self.extras = physics_extras(self.physics.state_dim, self.physics.action_dim)
-        self.imagined = ReplayBuffer(d.imagined_buffer_size, obs_dim, adapter.dim, extras=self.extras)
+        self.imagined = ReplayBuffer(m.imagine.buffer_size, obs_dim, adapter.dim, extras=self.extras)
         self.model_env = ModelEnv(
-            self.model, task, adapter, streams.imagination, use_path=d.reward_quadrature == "path", physics=self.physics
+            self.model,
+            task,
+            adapter,
+            streams.imagination,
+            use_path=m.imagine.reward_quadrature == "path",
+            physics=self.physics,
         )
         self.in_use = False
         self.finetuning = False
@@ -132,22 +161,19 @@ class DynaModel:
         self.baseline_mse = float("inf")  # the no-change prediction's error on the same held-out transitions
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
-        #: the validation episodes the fine-tuning switch reads (``dyna.finetune_return``), None when off: the
+        #: the validation episodes the fine-tuning switch reads (``finetune.at_return``), None when off: the
         #: switch never reads the test states, so a run trains the same whatever its test set
-        self.validator = (
-            Evaluator(cfg.env, cfg.env_kwargs, d.finetune_episodes, VALIDATION_SEED, protocol="validation")
-            if d.finetune_return is not None
-            else None
-        )
+        self.validator = validator
         #: the mean return on the validation draws at the last evaluation (None before the first)
         self.last_validation: float | None = None
-        #: model-based policy selection (``dyna.select_episodes``), None when off
-        self.selector = PolicySelector(self.model_env, d.select_episodes) if d.select_episodes else None
+        #: model-based policy selection (``imagine.select_episodes``), None when off
+        episodes = m.imagine.select_episodes
+        self.selector = PolicySelector(self.model_env, episodes) if episodes else None
 
     # ------------------------------------------------------------------ real transitions
     def holdout_flag(self) -> float:
         """1.0 for a real transition to hold out of model training (drawn from the ``holdout`` stream)."""
-        return float(self.streams.holdout.random() < self.cfg.dyna.holdout_fraction)
+        return float(self.streams.holdout.random() < self.method.check.holdout_fraction)
 
     # ------------------------------------------------------------------ the model phase
     def validate(self, agent: Agent) -> None:
@@ -168,67 +194,97 @@ class DynaModel:
         message: Callable[[str], None],
     ) -> None:
         """Fit, check and imagine (each where due); ``timed(phase)`` is a context manager that times a phase."""
-        d = self.cfg.dyna
         if self._switch_to_finetuning(t, self.last_validation):
             message(f"step {t:>8,d}  switching to model-free fine-tuning")
         if self.finetuning:
             self.in_use = False
             return
         n_real = len(real)
-        with_labels = n_real >= d.start_model_after
-        physics_started = self._physics_started(n_real)
-        physics_only = not with_labels and physics_started
+        with_labels = n_real >= self.method.start_after
+        physics_only = not with_labels and self._physics_started(n_real)
         train_idx, holdout_idx = split_indices(real)
-        if (with_labels or physics_only) and d.model_steps > 0 and len(train_idx) > 0:
+        if (with_labels or physics_only) and (self.fit is None or self.fit.steps > 0) and len(train_idx) > 0:
             with timed("model_train"):
-                labelled = BufferView(real, train_idx) if with_labels else None
-                unlabelled = None
-                if physics_started or (
-                    self.trainer.residual is not None and n_real + len(self.imagined) >= d.start_physics_after
-                ):
-                    unlabelled = UnlabelledPairs(
-                        real, train_idx, self.imagined, self.task, self.adapter, agent, self.streams, self.sources, self.physics
-                    )
-                if labelled is not None:
-                    self.trainer.ensure_normalization(labelled.all())  # once: statistics of the first training data
-                else:
-                    self._normalise_from_the_equation(real, train_idx)
-                self.metrics = self.trainer.fit(
-                    d.model_steps,
-                    d.model_batch_size,
-                    self.streams.model_batches,
-                    labelled,
-                    unlabelled,
-                    unlabelled_rng=self.streams.physics_states,
-                )
-                if self.reward_model is not None and labelled is not None:
-                    self.metrics["model/reward_mse"] = self._fit_reward(real, train_idx)
-                coefficients = self.trainer.coefficients
-                if coefficients is not None and labelled is not None:
-                    self.coefficient_history.append(
-                        {"step": t, **coefficients.current(), "loss": self.metrics["model/coefficient_loss"]}
-                    )
-                    self._follow_learned_coefficients()
+                self.fit_model(real, train_idx, agent, t, with_labels)
             with timed("model_check"):
-                recent = BufferView(real, holdout_idx[-d.validation_size :]).all()  # oldest first: the most recent
-                self.val_mse = self.trainer.validation_mse(recent)
-                self.baseline_mse = no_change_mse(self.physics, recent)
-                if d.accuracy == "relative":  # <=: an exact model of a system at rest is accurate too
-                    self.in_use = bool(np.isfinite(self.val_mse)) and self.val_mse <= d.relative_threshold * self.baseline_mse
-                else:
-                    self.in_use = self.val_mse < d.threshold
-        if self.in_use and d.rollouts > 0:
+                self.check_model(BufferView(real, holdout_idx[-self.method.check.validation_size :]).all())
+        if self.in_use and self.method.imagine.rollouts > 0:
             with timed("imagine"):
-                self.imagine(real, agent, d.rollouts)
+                self.imagine(real, agent, self.method.imagine.rollouts)
+
+    def fit_model(self, real: ReplayBuffer, train_idx: torch.Tensor, agent: Agent, t: int, with_labels: bool) -> None:
+        """Fit: the data loss on the labelled training transitions, the physics loss on unlabelled pairs where due.
+
+        Without labels (the physics loss alone, ``physics.alone_from``) the normalisation comes from the equation.
+        A method without a fit (the known scheme) only has its normalisation set.
+        """
+        labelled = BufferView(real, train_idx) if with_labels else None
+        unlabelled = None
+        physics = self.physics_loss
+        if physics is not None and (self._physics_started(len(real)) or len(real) + len(self.imagined) >= physics.start_after):
+            unlabelled = self.physics_pairs(real, train_idx, agent)
+        if labelled is not None:
+            self.trainer.ensure_normalization(labelled.all())  # once: statistics of the first training data
+        else:
+            self._normalise_from_the_equation(real, train_idx)
+        if self.fit is None:
+            return
+        self.metrics = self.trainer.fit(
+            self.fit.steps,
+            self.fit.batch_size,
+            self.streams.model_batches,
+            labelled,
+            unlabelled,
+            unlabelled_rng=self.streams.physics_states,
+        )
+        if self.reward_model is not None and labelled is not None:
+            self.metrics["model/reward_mse"] = self._fit_reward(real, train_idx)
+        coefficients = self.trainer.coefficients
+        if coefficients is not None and labelled is not None:
+            self.coefficient_history.append({"step": t, **coefficients.current(), "loss": self.metrics["model/coefficient_loss"]})
+            self._follow_learned_coefficients()
+
+    def physics_pairs(self, real: ReplayBuffer, train_idx: torch.Tensor, agent: Agent) -> PhysicsPairs:
+        """The physics loss's unlabelled pairs (:class:`~pimbrl.models.state_sources.PhysicsPairs`).
+
+        Real training states with the current policy's actions, the imagined buffer's pairs, the broad sources.
+        The policy acts on the rows' observations, with its exploration noise; actions and the broad sources
+        draw from the ``physics_states`` stream.
+        """
+
+        def actions(rows: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+            obs = real.obs.index_select(0, train_idx.index_select(0, rows)).numpy()
+            env_actions = self.adapter.to_env(agent.act(obs, rng=rng), rng)
+            return torch.as_tensor(self.task.physical_action(env_actions, len(rows)), dtype=torch.float32)
+
+        return PhysicsPairs(
+            self.physics,
+            self.sources,
+            lambda rows: real.extra("state", train_idx.index_select(0, rows)),
+            len(train_idx),
+            actions,
+            lambda: len(self.imagined),
+            lambda rows: (self.imagined.extra("state", rows), self.imagined.extra("physical_action", rows)),
+            self.streams.physics_states,
+        )
+
+    def check_model(self, recent: TransitionData) -> None:
+        """Check: the model's error on the most recent held-out real transitions decides whether it is in use."""
+        check = self.method.check
+        self.val_mse = self.trainer.validation_mse(recent)
+        self.baseline_mse = no_change_mse(self.physics, recent)
+        if check.accuracy == "relative":  # <=: an exact model of a system at rest is accurate too
+            self.in_use = bool(np.isfinite(self.val_mse)) and self.val_mse <= check.relative_threshold * self.baseline_mse
+        else:
+            self.in_use = self.val_mse < check.threshold
 
     def _fit_reward(self, real: ReplayBuffer, train_idx: torch.Tensor) -> float:
         """Fit the learned reward on the model's training transitions (as many steps as the model); its last loss."""
         assert self.reward_model is not None
-        d = self.cfg.dyna
+        assert self.fit is not None
         u, a = real.extra("state", train_idx), real.extra("physical_action", train_idx)
-        return self.reward_model.fit(
-            u, a, real.extra("next_state", train_idx), real.reward.index_select(0, train_idx), d.model_steps, d.model_batch_size
-        )
+        nxt, reward = real.extra("next_state", train_idx), real.reward.index_select(0, train_idx)
+        return self.reward_model.fit(u, a, nxt, reward, self.fit.steps, self.fit.batch_size)
 
     def _follow_learned_coefficients(self) -> None:
         """Judge imagined steps with the prior at the learned coefficients' current values (after a fit).
@@ -242,8 +298,8 @@ class DynaModel:
 
     def _physics_started(self, n_real: int) -> bool:
         """PiMBRL with ``physics_start``: the physics loss from then on (alone before ``start_model_after``)."""
-        start = self.cfg.dyna.physics_start
-        return self.trainer.residual is not None and start is not None and n_real >= start
+        start = None if self.physics_loss is None else self.physics_loss.alone_from
+        return start is not None and n_real >= start
 
     def _normalise_from_the_equation(self, real: ReplayBuffer, train_idx: torch.Tensor) -> None:
         """Fit the normalisation once from the equation, before any label is used.
@@ -264,17 +320,17 @@ class DynaModel:
 
         By return: the mean return on the validation draws at the last evaluation (:meth:`validate`).
         """
-        d = self.cfg.dyna
+        f = self.method.finetune
         if self.finetuning:
             return False
-        by_return = d.finetune_return is not None and validation_return is not None and validation_return >= d.finetune_return
-        by_steps = d.finetune_after is not None and t >= d.finetune_after
+        by_return = f.at_return is not None and validation_return is not None and validation_return >= f.at_return
+        by_steps = f.after is not None and t >= f.after
         self.finetuning = by_return or by_steps
         return self.finetuning
 
     def imagine(self, real: ReplayBuffer, agent: Agent, n_rollouts: int) -> None:
         """Roll the model from sampled start states and store the imagined transitions in D^f."""
-        d = self.cfg.dyna
+        d = self.method.imagine
         rng = self.streams.imagination
         n_img = round(n_rollouts * d.imagined_start_fraction) if len(self.imagined) else 0
         n_reset = min(round(n_rollouts * d.reset_start_fraction), n_rollouts - n_img)  # the shares' roundings fit
@@ -284,7 +340,7 @@ class DynaModel:
         if n_reset:
             # imagined episodes from their first step, started as the environment's resets start them
             reset = torch.from_numpy(self.task.sample_initial_states(rng, n_reset))
-            if d.reset_start_symmetry:  # an image of each under a random symmetry of the equation
+            if self.reset_start_symmetry:  # an image of each under a random symmetry of the equation
                 reset = broad_states(self.physics, "symmetry", reset, n_reset, rng)
             states.append(reset.to(states[0].dtype))
             ks.append(torch.zeros((n_reset, *ks[0].shape[1:]), dtype=ks[0].dtype))
@@ -311,7 +367,7 @@ class DynaModel:
 
     def agent_batch(self, real: ReplayBuffer, size: int, rng: np.random.Generator) -> Batch:
         """The agent's batch: mixed with imagined transitions while the model is in use."""
-        return agent_batch(real, self.imagined if self.in_use else None, self.cfg.dyna.real_ratio, size, rng)
+        return agent_batch(real, self.imagined if self.in_use else None, self.method.imagine.real_ratio, size, rng)
 
     # ------------------------------------------------------------------ logging and state
     def metric_names(self) -> list[str]:
@@ -424,72 +480,6 @@ def split_indices(buf: ReplayBuffer) -> tuple[torch.Tensor, torch.Tensor]:
     hold = buf.extras["holdout"][order, 0] > 0.5
     valid = buf.extras["valid"][order, 0] > 0.5
     return order[~hold & valid], order[hold & valid]
-
-
-class UnlabelledPairs:
-    """State-action pairs for the physics loss, which needs no label: an equal share per source.
-
-    ``policy``: real training states with actions of the current policy (exploration noise included);
-    ``imagined``: the imagined buffer's pairs (its share goes to the other sources while the buffer is
-    empty; with ``imagined`` alone, to ``policy``); the broad sources of :mod:`pimbrl.models.state_sources`
-    from the real training states. Actions and their noise come from the ``physics_states`` stream.
-    ``physics`` (default: the task's) is the run's prior, which the broad sources consult.
-    """
-
-    def __init__(
-        self,
-        real: ReplayBuffer,
-        train_idx: torch.Tensor,
-        imagined: ReplayBuffer,
-        task: Task,
-        adapter: ActionAdapter,
-        agent: Agent,
-        streams: RandomStreams,
-        sources: tuple[str, ...] = ("policy", "imagined"),
-        physics: Physics | None = None,
-    ) -> None:
-        self.real = real
-        self.physics = task.physics if physics is None else physics  # the run's prior: what it knows
-        self.idx = train_idx
-        self.imagined = imagined
-        self.task = task
-        self.adapter = adapter
-        self.agent = agent
-        self.rng = streams.physics_states
-        self.sources = sources
-
-    def __len__(self) -> int:
-        return len(self.idx) + len(self.imagined)
-
-    def sample(self, batch: int, rng: np.random.Generator) -> TransitionData:
-        """``batch`` unlabelled pairs, an equal share per source (indices from ``rng``).
-
-        ``imagined`` gives its share to the other sources until the imagined buffer has data.
-        """
-        sources = [s for s in self.sources if s != "imagined" or len(self.imagined)] or ["policy"]
-        counts = even_shares(batch, len(sources))
-        states: list[torch.Tensor] = []
-        acts: list[torch.Tensor] = []
-        for source, n in zip(sources, counts, strict=True):
-            if n == 0:
-                continue
-            if source == "policy":
-                rows = self.idx[torch.from_numpy(rng.integers(0, len(self.idx), size=n))]
-                obs = self.real.obs.index_select(0, rows).numpy()
-                actions = self.adapter.to_env(self.agent.act(obs, rng=self.rng), self.rng)
-                states.append(self.real.extra("state", rows))
-                acts.append(torch.as_tensor(self.task.physical_action(actions, n), dtype=torch.float32))
-            elif source == "imagined":
-                img = torch.from_numpy(rng.integers(0, len(self.imagined), size=n))
-                states.append(self.imagined.extra("state", img))
-                acts.append(self.imagined.extra("physical_action", img))
-            else:  # broad_states draws n seeds among those it is given: gather just n rows (none for the box)
-                pick = self.idx[torch.from_numpy(self.rng.integers(0, len(self.idx), size=n))]
-                seeds = self.real.extra("state", pick) if source != "box" else self.real.extra("state", pick[:1])
-                pair = broad_pairs(self.physics, source, seeds, n, self.rng)
-                states.append(pair[0])
-                acts.append(pair[1])
-        return TransitionData(torch.cat(states), torch.cat(acts))
 
 
 class BufferView:

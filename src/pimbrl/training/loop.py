@@ -33,14 +33,14 @@ import torch
 
 from ..agents import Agent, make_agent
 from ..buffers import ReplayBuffer
-from ..config import ConfigError, to_dict
-from ..envs import Task
+from ..config import ConfigError
+from ..envs import VALIDATION_SEED, Task
 from ..models import TransitionModel
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from ..systems import system_origin
 from .collector import Collector
-from .config import TrainConfig, config_from_dict
+from .config import TrainConfig, config_from_dict, config_to_dict
 from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator
 from .logger import RunLogger
@@ -239,7 +239,8 @@ class Run:
     def lr_scale(self) -> float | None:
         """The learning rates' fraction of their configured values at this step (``None``: no decay configured)."""
         cfg = self.cfg
-        return None if cfg.lr_decay_after is None else lr_scale(self.t, cfg.lr_decay_after, cfg.total_steps, cfg.lr_decay_to)
+        x = cfg.experimental
+        return None if x.lr_decay_after is None else lr_scale(self.t, x.lr_decay_after, cfg.total_steps, x.lr_decay_to)
 
     def counters(self) -> dict[str, Any]:
         """The counters of a ``metrics.csv`` row."""
@@ -280,7 +281,7 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
             return _finish(run)
         finally:
             run.run_dir.close()  # releases the run's lock
-    log.open(run.t, cfg.total_steps, f"{cfg.method}/{cfg.agent} {cfg.env} seed {cfg.seed}")
+    log.open(run.t, cfg.total_steps, f"{cfg.method.name}/{cfg.agent.name} {cfg.env} seed {cfg.seed}")
     try:
         run.collector.reset(first=run.t == 0)
         while run.t < cfg.total_steps:
@@ -303,7 +304,7 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
                     if scale is not None:
                         run.agent.set_lr_scale(scale)
                     for _ in range(run.schedule.take()):
-                        size = cfg.agent_config.batch_size
+                        size = cfg.agent.batch_size
                         if run.model is not None:
                             batch = run.model.agent_batch(run.real, size, run.streams.replay)
                         else:
@@ -363,11 +364,18 @@ def _finish(run: Run) -> RunSummary:
 
 
 # ---------------------------------------------------------------------- building and reopening runs
+def resolve_device(device: str) -> str:
+    """``cpu`` or ``cuda``: ``auto`` is CUDA where torch sees a GPU, else the CPU."""
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
 def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) -> Run:
     """The components of a fresh run of ``cfg`` (nothing is written to ``run_dir``)."""
     torch.set_num_threads(cfg.threads)
     streams = RandomStreams(cfg.seed)
-    model_based = cfg.method in ("mbrl", "pimbrl")
+    model_based = cfg.model_based
     try:
         collector = Collector(cfg.env, cfg.env_kwargs, streams, record_physics=model_based)
     except (ImportError, gym.error.Error) as exc:  # a registered id whose package or dependency is missing here
@@ -375,17 +383,38 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
         raise ConfigError(
             f"environment {cfg.env} cannot be made here ({type(exc).__name__}: {first}); install what it needs"
         ) from None
-    agent = make_agent(cfg.agent, collector.obs_dim, collector.adapter.dim, cfg.agent_config, cfg.seed)
+    agent = make_agent(
+        cfg.agent,
+        collector.obs_dim,
+        collector.adapter.dim,
+        cfg.seed,
+        critic_layer_norm=cfg.experimental.critic_layer_norm,
+        device=resolve_device(cfg.device),
+    )
     model = None
     extras = None
     if model_based:
-        model = DynaModel(cfg, collector.task, collector.adapter, collector.obs_dim, streams)
+        finetune = cfg.dyna.finetune
+        validator = (
+            Evaluator(cfg.env, cfg.env_kwargs, finetune.episodes, VALIDATION_SEED, protocol="validation")
+            if finetune.at_return is not None
+            else None
+        )
+        model = DynaModel(
+            cfg.dyna,
+            collector.task,
+            collector.adapter,
+            collector.obs_dim,
+            streams,
+            validator=validator,
+            reset_start_symmetry=cfg.experimental.reset_start_symmetry,
+        )
         extras = model.extras
     real = ReplayBuffer(min(cfg.buffer_size, cfg.total_steps), collector.obs_dim, collector.adapter.dim, extras=extras)
     columns = ["agent/critic_loss", "agent/q_mean", "agent/actor_loss"]
-    if cfg.agent == "sac":
+    if cfg.agent.name == "sac":
         columns += ["agent/entropy", "agent/alpha"]
-    if cfg.lr_decay_after is not None:
+    if cfg.experimental.lr_decay_after is not None:
         columns.append("lr_scale")
     if model is not None:
         columns += model.metric_names()
@@ -412,7 +441,7 @@ def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, comman
             raise FileExistsError(_exists_message(path))
         run_dir.check_entries(writing=True)  # a folder holding planted links or FIFOs is refused
         run_dir.remove_stale_temporaries()
-        payload = {"status": "running", "config": to_dict(cfg), "versions": package_versions(), "command": command}
+        payload = {"status": "running", "config": config_to_dict(cfg), "versions": package_versions(), "command": command}
         run_dir.write_config({**payload, "system": {"id": cfg.env, "origin": system_origin(cfg.env)}})
     except BaseException:
         run_dir.close()

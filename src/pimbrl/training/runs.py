@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from ..config import ConfigError, to_dict, validate
-from .config import TrainConfig
+from ..config import ConfigError, validate
+from .config import TrainConfig, config_to_dict
 from .loop import Run, RunSummary, create_run, open_run, read_run_config, train
 from .rundir import RunDirectory
 
@@ -31,7 +31,7 @@ def extend_run(path: str | Path, total_steps: int) -> None:
     the old end is an episode boundary it makes exactly the steps of a run given the larger budget from the
     start (tested), where it falls inside an episode it starts a new one there (checkpoints do not hold an
     episode in progress). The real buffer, sized to the old budget, grows to the new one. A learning-rate
-    decay (``lr_decay_after``) ends at ``total_steps``, so past its start the extended run's rates follow the
+    decay (``experimental.lr_decay_after``) ends at ``total_steps``, so past its start the extended run's rates follow the
     new, longer line and are not those of a run given the larger budget from the start.
 
     Raises:
@@ -49,7 +49,7 @@ def extend_run(path: str | Path, total_steps: int) -> None:
             raise ConfigError(f"--total-steps {total_steps:,d} must be larger than the run's total_steps {cfg.total_steps:,d}")
         longer = dataclasses.replace(cfg, total_steps=int(total_steps))
         validate(longer)
-        payload["config"] = to_dict(longer)
+        payload["config"] = config_to_dict(longer)
         payload.pop("summary", None)
         if payload.get("status") == "finished":
             payload["status"] = "running"

@@ -1,0 +1,138 @@
+"""Presets: a system's named training recipes, read from a YAML file next to its definition.
+
+A preset file holds recipes by name and says which one a run gets without ``--preset``::
+
+    default: default           # the recipe of a run that names none
+    recipes:
+      default:
+        about: what this recipe is, in one line
+        settings:              # every method
+          total_steps: 3000
+          agent.gamma: 0.977
+        model_based:           # on top, for the methods with a model
+          utd: 5.0
+          imagine.rollout_length: 1
+      best:
+        about: ...
+        chosen_by: the study that chose it, and on which draws
+        method: known-scheme   # a recipe may choose the method (and the agent)
+        settings: {...}
+
+Settings are the paths of the training configuration (``utd``, ``agent.gamma``, ``fit.steps``, ...). A
+recipe's setting that the chosen method does not have is skipped (a recipe serves every method); the
+configuration checks every value. The built-in systems' files are ``pimbrl/systems/<module>.yaml``; a
+user's system names its file (or gives the same structure as a mapping) in ``System.preset``.
+YAML is read with ``yaml.safe_load``: data only, nothing in the file is executed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["PresetError", "Recipe", "load_presets"]
+
+_RECIPE_KEYS = {"about", "chosen_by", "method", "agent", "settings", "model_based"}
+
+
+class PresetError(ValueError):
+    """A preset file or mapping that cannot be read (a one-line message naming the file and the fix)."""
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One named recipe of a system's presets.
+
+    Attributes:
+        name: its name (``default``, ``paper``, ``best``, ...).
+        about: what it is, in one line.
+        chosen_by: the study that chose it and on which draws (``best``), else ``""``.
+        method: the method it chooses (``""``: the command line's, else mfrl).
+        agent: the agent it chooses (``""``: the command line's, else td3).
+        settings: configuration paths -> values, for every method.
+        model_based: configuration paths -> values, on top for the methods with a model.
+    """
+
+    name: str
+    about: str = ""
+    chosen_by: str = ""
+    method: str = ""
+    agent: str = ""
+    settings: Mapping[str, Any] = field(default_factory=dict)
+    model_based: Mapping[str, Any] = field(default_factory=dict)
+
+    def for_method(self, model_based: bool) -> dict[str, Any]:
+        """The recipe's settings for a method with (``True``) or without a model."""
+        return {**self.settings, **(self.model_based if model_based else {})}
+
+
+def _read(source: str | Path | Mapping[str, Any], where: str) -> Mapping[str, Any]:
+    if isinstance(source, Mapping):
+        return source
+    import yaml
+
+    path = Path(source)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise PresetError(f"{where}: cannot read the preset file {path} ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark is not None else ""
+        raise PresetError(f"{where}: the preset file {path} is not valid YAML{at}") from None
+    if not isinstance(data, Mapping):
+        raise PresetError(f"{where}: the preset file {path} must hold a mapping with 'recipes', got {type(data).__name__}")
+    return data
+
+
+def _recipe(name: str, body: Any, where: str) -> Recipe:
+    if not isinstance(body, Mapping):
+        raise PresetError(f"{where}: recipe {name!r} must be a mapping (about, settings, model_based, ...)")
+    unknown = set(body) - _RECIPE_KEYS
+    if unknown:
+        raise PresetError(
+            f"{where}: recipe {name!r} has unknown key(s) {', '.join(sorted(map(str, unknown)))}; "
+            f"a recipe has {', '.join(sorted(_RECIPE_KEYS))}"
+        )
+    for key in ("settings", "model_based"):
+        value = body.get(key) or {}
+        if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
+            raise PresetError(f"{where}: recipe {name!r}: {key} must map setting paths (e.g. agent.gamma) to values")
+    for key in ("about", "chosen_by", "method", "agent"):
+        if not isinstance(body.get(key, ""), str):
+            raise PresetError(f"{where}: recipe {name!r}: {key} must be a string")
+    return Recipe(
+        name=name,
+        about=body.get("about", ""),
+        chosen_by=body.get("chosen_by", ""),
+        method=body.get("method", ""),
+        agent=body.get("agent", ""),
+        settings=dict(body.get("settings") or {}),
+        model_based=dict(body.get("model_based") or {}),
+    )
+
+
+def load_presets(source: str | Path | Mapping[str, Any] | None, where: str = "preset") -> tuple[str, dict[str, Recipe]]:
+    """The default recipe's name and every recipe of a preset file (or mapping); ``("", {})`` for ``None``.
+
+    Raises :class:`PresetError` (one line, naming ``where``) for a file that cannot be read or a recipe
+    that is not a recipe.
+    """
+    if source is None or (isinstance(source, Mapping) and not source):
+        return "", {}
+    data = _read(source, where)
+    recipes = data.get("recipes")
+    if not isinstance(recipes, Mapping) or not recipes:
+        raise PresetError(f"{where}: a preset needs 'recipes', a mapping of named recipes (default, paper, best, ...)")
+    out = {str(name): _recipe(str(name), body, where) for name, body in recipes.items()}
+    default = data.get("default", "default")
+    if default not in out:
+        raise PresetError(f"{where}: the default recipe {default!r} is not among the recipes ({', '.join(out)})")
+    extra = set(data) - {"default", "recipes"}
+    if extra:
+        raise PresetError(
+            f"{where}: unknown top-level key(s) {', '.join(sorted(map(str, extra)))}; a preset has default and recipes"
+        )
+    return str(default), out

@@ -1,0 +1,356 @@
+"""One configuration tree: typed methods and agents, recipes as files, the model phase written once, old runs read."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from pimbrl.agents import DDPGConfig, SACConfig, TD3Config
+from pimbrl.cli import main
+from pimbrl.config import ConfigError
+from pimbrl.experiments.model_eval_config import ModelEvalConfig
+from pimbrl.systems.presets import PresetError, load_presets
+from pimbrl.training import (
+    MBRL,
+    METHODS,
+    Hybrid,
+    IdentifiedScheme,
+    KnownScheme,
+    PhysicsLoss,
+    PiHybrid,
+    PiMBRL,
+    create_run,
+    resolve_config,
+    train,
+)
+from pimbrl.training.cli_args import config_from_argv, parse_train_args
+from pimbrl.training.config import config_from_dict, config_to_dict, field_paths, inapplicable_reason, recipe_of
+from pimbrl.training.methods import METHOD_TYPES, SECTIONS, methods_with
+
+ROOT = Path(__file__).resolve().parent.parent
+LEGACY = Path(__file__).resolve().parent / "data" / "legacy"
+KS = "pimbrl/KuramotoSivashinsky-v0"
+
+
+# ---------------------------------------------------------------------------------- typed methods and agents
+def test_a_setting_a_method_or_agent_does_not_have_cannot_be_written() -> None:
+    with pytest.raises(TypeError):
+        MBRL(physics=PhysicsLoss())  # type: ignore[call-arg]
+    with pytest.raises(TypeError):
+        KnownScheme(fit=None)  # type: ignore[call-arg]  # nothing is trained
+    with pytest.raises(TypeError):
+        SACConfig(policy_delay=2)  # type: ignore[call-arg]
+    with pytest.raises(TypeError):
+        DDPGConfig(target_noise=0.1)  # type: ignore[call-arg]
+    assert TD3Config().policy_delay == 2 and not hasattr(DDPGConfig(), "policy_delay")
+    # the methods are named for what runs: the known scheme is not PiMBRL
+    assert METHODS == ("mfrl", "mbrl", "pimbrl", "known-scheme", "identified-scheme", "hybrid", "pihybrid")
+    kinds = {name: cls().model_kind for name, cls in METHOD_TYPES.items()}
+    assert kinds == {"mfrl": None, "mbrl": "auto", "pimbrl": "auto", "known-scheme": "physics",
+                     "identified-scheme": "physics", "hybrid": "hybrid", "pihybrid": "hybrid"}  # fmt: skip
+    assert not hasattr(MBRL(), "physics") and hasattr(PiMBRL(), "physics") and hasattr(PiHybrid(), "learn")
+    assert not hasattr(Hybrid(), "physics") and hasattr(IdentifiedScheme(), "learn")
+
+
+def test_which_method_has_a_setting_follows_from_the_types_alone() -> None:
+    for path in field_paths():
+        head, _, name = path.partition(".")
+        if head not in ("model", *SECTIONS):
+            continue
+        for method, cls in METHOD_TYPES.items():
+            fields = {f.name: f for f in dataclasses.fields(cls)}
+            has = (name in fields and not fields[name].metadata.get("section")) if head == "model" else head in fields
+            assert (method in methods_with(path)) == has, (path, method)
+            reason = inapplicable_reason("pimbrl/Burgers-v0", method, "td3", path)
+            assert (reason is None) == has or "PDE" in (reason or ""), (path, method, reason)
+
+
+def test_structured_values_are_read_once_on_the_command_line() -> None:
+    over = parse_train_args(
+        ["--method", "pimbrl", "--model.prior", "nu=0.007", "--learn.coefficients", "nu,damping:0:1,correction",
+         "--physics.sources", "policy,symmetry"]
+    )  # fmt: skip
+    assert over["model.prior"] == {"nu": 0.007}
+    assert over["learn.coefficients"] == {"nu": None, "damping": [0.0, 1.0]} and over["learn.correction"] is True
+    assert over["physics.sources"] == ("policy", "symmetry")
+    cfg = config_from_argv(["burgers", "--method", "pimbrl", "--model.prior", "nu=0.007", "--learn.coefficients", "nu"])
+    assert cfg.method.prior == {"nu": 0.007} and cfg.method.learn.ranges() == {"nu": None}
+    with pytest.raises(ConfigError, match=r'^model\.prior takes a mapping, e\.g\. \{"nu": 0\.01\}'):
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "model.prior": "nu=0.007"})
+
+
+def test_an_old_setting_path_names_its_new_one_in_one_line(capsys) -> None:
+    with pytest.raises(ConfigError, match=r"^dyna\.physics_weight is now physics\.weight \(--physics\.weight\)$"):
+        resolve_config("pimbrl/Burgers-v0", {"method": "pimbrl", "dyna.physics_weight": 2.0})
+    with pytest.raises(ConfigError, match=r"^lr_decay_after is now experimental\.lr_decay_after"):
+        resolve_config("pimbrl/Burgers-v0", {"lr_decay_after": 100})
+    with pytest.raises(ConfigError, match=r"dyna\.model is now the method itself: .*--method known-scheme"):
+        resolve_config("pimbrl/Burgers-v0", {"dyna.model": "physics"})
+
+
+def test_knobs_measured_as_no_help_are_experimental() -> None:
+    for old in ("lr_decay_after", "agent.critic_layer_norm", "dyna.reset_start_symmetry"):
+        with pytest.raises(ConfigError, match="is now experimental"):
+            resolve_config("pimbrl/Burgers-v0", {old: 1 if "decay" in old else True})
+    cfg = resolve_config("pimbrl/Burgers-v0", {"experimental.critic_layer_norm": True})
+    assert cfg.experimental.critic_layer_norm and not hasattr(cfg.agent, "critic_layer_norm")
+
+
+# ---------------------------------------------------------------------------------- the command line
+def _options(text: str) -> set[str]:
+    return {tok.split("=")[0].rstrip(",") for line in text.splitlines() if line.startswith("  -")
+            for tok in line.split() if tok.startswith("-")}  # fmt: skip
+
+
+def test_train_help_shows_at_most_25_options_and_help_all_shows_every_setting(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    shown = _options(capsys.readouterr().out)
+    assert len(shown) <= 25, sorted(shown)
+    assert {"--method", "--agent", "--preset", "--steps", "--seed", "--device", "--help-all"} <= shown
+    assert "--physics.weight" not in shown and "--agent.gamma" not in shown
+    assert main(["train", "--help-all"]) == 0
+    full = capsys.readouterr().out
+    every = _options(full)
+    assert {"--physics.weight", "--imagine.rollout-length", "--agent.gamma", "--model.prior", "--learn.coefficients",
+            "--experimental.lr-decay-after", "--fit.steps", "--check.threshold", "--finetune.at-return"} <= every  # fmt: skip
+    assert "[methods pimbrl, pihybrid]" in full and "[agent sac]" in full
+    assert "preset/default" not in full and "where the recipe sets none" in full
+
+
+def test_a_misspelled_flag_is_one_line_with_the_closest_flag(capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["train", "burgers", "--utdd", "3"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--utdd" in err[0] and "(did you mean" in err[0] and "--utd" in err[0]
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith("pimbrl ")
+
+
+def test_the_device_is_a_setting_and_cuda_without_a_gpu_is_refused() -> None:
+    import torch
+
+    assert resolve_config("pimbrl/Burgers-v0").device == "cpu"
+    assert resolve_config("pimbrl/Burgers-v0", {"device": "auto"}).device == "auto"
+    with pytest.raises(ConfigError, match="device must be one of"):
+        resolve_config("pimbrl/Burgers-v0", {"device": "tpu"})
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match=r"^--device cuda: torch sees no CUDA GPU here"):
+            resolve_config("pimbrl/Burgers-v0", {"device": "cuda"})
+
+
+def test_the_cli_s_warnings_live_below_the_cli() -> None:
+    import pimbrl.cli as cli
+    from pimbrl.training import advice
+
+    assert not hasattr(cli, "budget_warnings") and not hasattr(cli, "_flag_of")
+    cfg = resolve_config(KS, {"method": "pimbrl", "total_steps": 1500})
+    assert any("model.start_after = 6000" in line for line in advice.budget_warnings(cfg))
+
+
+# ---------------------------------------------------------------------------------- recipes as files
+def test_every_built_in_system_has_a_preset_file_beside_its_definition() -> None:
+    for module in ("burgers", "cartpole", "pendulum", "ks"):
+        path = ROOT / "src" / "pimbrl" / "systems" / f"{module}.yaml"
+        default, recipes = load_presets(path)
+        assert default == "default" and {"default", "paper"} <= set(recipes), module
+        assert all(r.about for r in recipes.values())
+
+
+def test_the_paper_recipe_has_the_paper_s_values_and_best_names_its_study() -> None:
+    pendulum = "pimbrl/Pendulum-v0"
+    assert resolve_config(pendulum, {"method": "pimbrl"}).method.start_after == 600
+    paper = resolve_config(pendulum, {"method": "pimbrl"}, preset="paper")
+    assert paper.method.start_after == 6_000 and paper.method.physics.start_after == 12_000 and paper.utd == 1.0
+    assert resolve_config(KS, {"method": "pimbrl"}, preset="paper").method.network == "convlstm"
+    best = recipe_of(KS, "best")
+    assert best.method == "known-scheme" and "EXPLORATORY" in best.chosen_by and "test states" in best.chosen_by
+    cfg = resolve_config(KS, {"seed": 3}, preset="best")
+    assert cfg.method.name == "known-scheme" and cfg.method.imagine.rollout_length == 25 and cfg.seed == 3
+    with pytest.raises(ConfigError, match=r"^--preset best: pimbrl/Burgers-v0 has the recipes default, paper$"):
+        resolve_config("pimbrl/Burgers-v0", preset="best")
+
+
+def test_running_a_recipe_says_which_and_who_chose_it(capsys) -> None:
+    assert main(["train", "ks", "--preset", "best", "--print-config"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["method"]["name"] == "known-scheme"
+    assert "recipe best of pimbrl/KuramotoSivashinsky-v0" in out.err and "EXPLORATORY" in out.err
+
+
+def test_a_user_s_system_gets_its_preset_from_a_file_and_a_bad_one_is_one_line(tmp_path) -> None:
+    cfg = config_from_argv(["duffing", "--method", "pimbrl"]) if _imported("duffing") else None
+    assert cfg is not None and cfg.total_steps == 10_000 and cfg.method.imagine.rollout_length == 20
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("recipes:\n  default:\n    settings: [1, 2]\n")
+    with pytest.raises(PresetError, match=r"^x: recipe 'default': settings must map setting paths"):
+        load_presets(bad, where="x")
+    bad.write_text("recipes: {default: {about: a}}\ndefault: paper\n")
+    with pytest.raises(PresetError, match="the default recipe 'paper' is not among the recipes"):
+        load_presets(bad, where="x")
+    bad.write_text("recipes: {default: {setings: {}}}\n")
+    with pytest.raises(PresetError, match="unknown key"):
+        load_presets(bad, where="x")
+
+
+def _imported(alias: str) -> bool:
+    from pimbrl.systems import import_systems, resolve_env_id
+
+    import_systems([str(ROOT / "examples" / "duffing.py")])
+    return resolve_env_id(alias) == "example/Duffing-v0"
+
+
+# ---------------------------------------------------------------------------------- the model phase once
+def test_model_eval_uses_the_training_s_physics_loss_and_its_defaults() -> None:
+    assert ModelEvalConfig().physics == PhysicsLoss() == PiMBRL().physics
+    assert PhysicsLoss().sources == () and PhysicsLoss().units == "step"  # every source the system offers
+    # one sampler of unlabelled pairs, used by the loop and by the model study
+    for path in ("training/dyna.py", "experiments/model_eval.py", "experiments/model_study.py"):
+        text = (ROOT / "src" / "pimbrl" / path).read_text()
+        assert "class UnlabelledPairs" not in text and "class PhysicsPairs" not in text, path
+    assert "PhysicsPairs(" in (ROOT / "src/pimbrl/training/dyna.py").read_text()
+    assert "PhysicsPairs(" in (ROOT / "src/pimbrl/experiments/model_eval.py").read_text()
+
+
+def test_the_model_phase_reads_fit_check_imagine(tmp_path, monkeypatch) -> None:
+    from pimbrl.training.dyna import DynaModel
+
+    order: list[str] = []
+    for name in ("fit_model", "check_model", "imagine"):
+        original = getattr(DynaModel, name)
+
+        def wrapped(self, *args, _name=name, _original=original, **kwargs):
+            order.append(_name)
+            return _original(self, *args, **kwargs)
+
+        monkeypatch.setattr(DynaModel, name, wrapped)
+    cfg = resolve_config(
+        "pimbrl/Pendulum-v0",
+        {"method": "pimbrl", "total_steps": 200, "warmup_steps": 100, "update_after": 100, "eval_every": 200,
+         "eval_episodes": 2, "agent.hidden": (16, 16), "agent.batch_size": 16, "model.start_after": 100,
+         "physics.start_after": 100, "fit.steps": 1, "fit.batch_size": 16, "imagine.rollouts": 4,
+         "check.threshold": 1e3, "check.validation_size": 16},
+    )  # fmt: skip
+    train(create_run(cfg, tmp_path / "run", progress=False))
+    assert order and order[:3] == ["fit_model", "check_model", "imagine"]
+
+
+def test_model_eval_prints_its_splits_plainly(tmp_path, capsys) -> None:
+    args = ["model-eval", "cartpole", "--run-dir", str(tmp_path / "me"), "--transitions", "200", "--test-transitions", "20"]
+    assert main([*args, "--steps", "20", "--batch-size", "32", "--refresh-every", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "  in-sample      MSE" in out and "  out-sample     MSE" in out and "in -sample" not in out
+    summary = json.loads((tmp_path / "me" / "summary.json").read_text())
+    assert summary["config"]["physics"] == json.loads(json.dumps(dataclasses.asdict(PhysicsLoss())))
+    with pytest.raises(SystemExit):  # the schedule of a training run's physics loss is not a model-eval flag
+        main([*args, "--physics.start-after", "5"])
+    from pimbrl.experiments.model_eval import check_physics_settings
+
+    with pytest.raises(ValueError, match=r"--physics\.start-after sets when a training run's physics loss starts"):
+        check_physics_settings(ModelEvalConfig(physics=PhysicsLoss(start_after=5)))
+
+
+# ---------------------------------------------------------------------------------- plots and figures
+def test_a_plot_of_two_systems_warns_and_names_each_curve(tmp_path, capsys, monkeypatch) -> None:
+    from .test_training import SMOKE, TINY
+
+    runs = {"pendulum": tmp_path / "p", "cartpole": tmp_path / "c", "pendulum2": tmp_path / "p2"}
+    for name, path in runs.items():
+        env = name.rstrip("2")
+        assert main(["train", env, *SMOKE[env], *TINY, "--run-dir", str(path)]) == 0
+    capsys.readouterr()
+    assert main(["plot", str(runs["pendulum"]), str(runs["cartpole"]), "--out", str(tmp_path / "mixed.png")]) == 0
+    err = capsys.readouterr().err
+    assert "on 2 systems" in err and "different scales" in err
+    from pimbrl import plotting
+
+    seen: dict = {}
+    original = plotting.plot_learning_curves
+
+    def spy(curves, path, **kwargs):
+        seen["labels"] = [c[0] for c in curves]
+        seen["band"] = kwargs.get("band")
+        return original(curves, path, **kwargs)
+
+    monkeypatch.setattr(plotting, "plot_learning_curves", spy)
+    assert main(["plot", str(runs["pendulum"]), str(runs["pendulum2"]), "--out", str(tmp_path / "same.png")]) == 0
+    assert len(set(seen["labels"])) == 2 and all("mfrl/td3 seed 0" in label for label in seen["labels"])
+    assert "lowest to the highest return of the test episodes" in seen["band"]
+
+
+def test_the_histogram_figure_has_its_own_file_beside_model_eval_s() -> None:
+    from pimbrl.cli import FIGURE_FILES
+
+    assert FIGURE_FILES["model-errors"] == "model_error_histograms.png"
+    assert len(set(FIGURE_FILES.values())) == len(FIGURE_FILES) and "model_errors.png" not in FIGURE_FILES.values()
+
+
+# ---------------------------------------------------------------------------------- recorded runs re-created
+def _cpu() -> str:
+    try:
+        return next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return "unknown"
+
+
+def test_old_configurations_map_to_the_commands_that_make_them_now() -> None:
+    old = {
+        name: json.loads((LEGACY / f"{name}.json").read_text())["config"]
+        for name in ("burgers_pimbrl", "burgers_mfrl", "ks_known_scheme")
+    }
+    burgers = "pimbrl/Burgers-v0"
+    assert config_from_dict(old["burgers_pimbrl"]) == resolve_config(burgers, {"method": "pimbrl", "total_steps": 2000})
+    assert config_from_dict(old["burgers_mfrl"]) == resolve_config(burgers, {"method": "mfrl", "total_steps": 2000})
+    ks = config_from_dict(old["ks_known_scheme"])  # --method mbrl --dyna.model physics: the known scheme, named so
+    assert ks.method.name == "known-scheme" and ks == resolve_config(KS, {"seed": 0, "threads": 1}, preset="best")
+    for cfg in map(config_from_dict, old.values()):  # written in the new form, read back the same
+        assert config_from_dict(json.loads(json.dumps(config_to_dict(cfg)))) == cfg
+
+
+@pytest.mark.slow  # the KS run trains 2,500 steps with 15,500 updates (about a minute)
+@pytest.mark.parametrize("name", ["burgers_pimbrl", "burgers_mfrl", "ks_known_scheme"])
+def test_recorded_runs_reproduce_their_first_evaluations_bit_for_bit(name: str, tmp_path) -> None:
+    record = json.loads((LEGACY / f"{name}.json").read_text())
+    if _cpu() != record["cpu"]:
+        pytest.skip(f"recorded on {record['cpu']!r}; runs are bit for bit on one CPU model only (this is {_cpu()!r})")
+    expected = record["evaluations"]
+
+    class StopAtFirstEvaluationsError(Exception):
+        pass
+
+    seen: list[int] = []
+
+    def on_event(event: str, run) -> None:
+        if event == "evaluate":
+            seen.append(run.t)
+            if len(seen) == len(expected):
+                raise StopAtFirstEvaluationsError
+
+    run = create_run(config_from_dict(record["config"]), tmp_path / "run", progress=False)
+    with pytest.raises(StopAtFirstEvaluationsError):
+        train(run, on_event=on_event)
+    run.run_dir.close()
+    with open(tmp_path / "run" / "evaluations.csv") as fh:
+        rows = [{k: v for k, v in r.items() if k in expected[0]} for r in csv.DictReader(fh)]
+    assert rows == expected
+
+
+def test_an_old_run_directory_still_resumes_evaluates_and_plots(tmp_path, capsys) -> None:
+    """A run directory whose config.json has the old flat form is read into the new types by every command."""
+    old = json.loads((LEGACY / "burgers_mfrl.json").read_text())["config"]
+    old.update(total_steps=130, eval_every=120, eval_episodes=2, warmup_steps=60, update_after=60, checkpoint_every=60)
+    old["agent_config"].update(hidden=[16, 16], batch_size=16)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"status": "running", "config": old, "command": "an old release"}))
+    assert main(["resume", str(run), "--quiet"]) == 0  # no checkpoint yet: the run starts from its beginning
+    assert main(["eval", str(run), "--episodes", "2"]) == 0
+    assert main(["plot", str(run), "--out", str(tmp_path / "c.png")]) == 0
+    assert (tmp_path / "c.png").exists()
