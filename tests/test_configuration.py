@@ -354,3 +354,19 @@ def test_an_old_run_directory_still_resumes_evaluates_and_plots(tmp_path, capsys
     assert main(["eval", str(run), "--episodes", "2"]) == 0
     assert main(["plot", str(run), "--out", str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.png").exists()
+
+
+#: the modules that test the command line (flags, messages, CLI runs): the only ones that read `pimbrl train` flags
+CLI_TEST_MODULES = {"test_cli.py", "test_cli_ux.py", "test_config.py", "test_configuration.py", "test_training.py"}
+
+
+def test_unit_tests_build_runs_through_the_python_api() -> None:
+    """Outside the command-line tests, a run's configuration comes from resolve_config, never from flags."""
+    here = Path(__file__).resolve().parent
+    readers = {
+        path.name
+        for path in here.glob("test_*.py")
+        if "config_from_argv" in path.read_text() or "parse_train_args" in path.read_text()
+    }
+    assert readers <= CLI_TEST_MODULES, sorted(readers - CLI_TEST_MODULES)
+    assert "flags(" in (here / "test_training.py").read_text()  # the CLI tests derive their flags from tests/settings.py

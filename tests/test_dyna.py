@@ -13,36 +13,27 @@ from pimbrl.training import Run, RunDirectory, create_run, resolve_config, train
 from pimbrl.training.config import has_setting
 
 from .conftest import SMALL_POOL
-from .test_training import POOL, TINY, _table, kill_when
+from .settings import DYNA_SMOKE_SETTINGS, ENV_IDS, SMALL_MODEL_SETTINGS, TINY_SETTINGS, flags, for_method
+from .test_training import TINY, _table, kill_when
 
-SMALL_MODEL = ["--fit.batch-size", "32", "--imagine.rollouts", "16", "--check.validation-size", "64"]
-DYNA_SMOKE = {
-    "ks": ["--steps", "60", "--warmup-steps", "20", "--update-after", "20", "--update-every", "20", "--eval-every", "60",
-           "--eval-episodes", "2", "--env-kwargs", POOL, "--model.start-after", "20", "--physics.start-after", "30",
-           "--fit.steps", "2", "--check.threshold", "1e3"],
-    "burgers": ["--steps", "180", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "60", "--eval-episodes", "3",
-                "--model.start-after", "60", "--physics.start-after", "60", "--fit.steps", "3", "--check.threshold", "1e3"],
-    "cartpole": ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "3",
-                 "--model.start-after", "100", "--physics.start-after", "150", "--fit.steps", "5",
-                 "--check.threshold", "1e3", "--imagine.rollout-length", "20"],
-    "pendulum": ["--steps", "300", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "150", "--eval-episodes", "3",
-                 "--model.start-after", "100", "--physics.start-after", "150", "--fit.steps", "5",
-                 "--check.threshold", "1e3", "--imagine.rollout-length", "20"],
-}  # fmt: skip
+SMALL_MODEL = flags(SMALL_MODEL_SETTINGS)
+#: the model-based smoke runs' `pimbrl train` flags (for the command-line tests)
+DYNA_SMOKE = {env: flags(settings) for env, settings in DYNA_SMOKE_SETTINGS.items()}
 
 
 def _for_method(args: list[str], method: str) -> list[str]:
-    """``args`` without the settings ``method`` does not have (mbrl: no physics loss; the flag would be an error)."""
+    """Flags ``args`` without the settings ``method`` does not have (mbrl: no physics loss; given, an error)."""
     out: list[str] = []
-    for i, arg in enumerate(args):
-        if i and out[-1:] == [None]:  # the value of a dropped flag
-            out[-1] = "dropped"
+    i = 0
+    while i < len(args):
+        flag = args[i]
+        takes_value = flag.startswith("--") and flag != "--quiet"
+        if takes_value and "." in flag and not has_setting(method, "td3", flag[2:].replace("-", "_")):
+            i += 2
             continue
-        if arg.startswith("--") and "." in arg and not has_setting(method, "td3", arg[2:].replace("-", "_")):
-            out.append(None)  # type: ignore[arg-type]
-            continue
-        out.append(arg)
-    return [a for a in out if a not in (None, "dropped")]
+        out += args[i : i + 2] if takes_value else [flag]
+        i += 2 if takes_value else 1
+    return out
 
 
 @pytest.mark.parametrize("method", ["mbrl", "pimbrl"])
@@ -326,11 +317,9 @@ def test_the_median_steps_to_threshold_is_measured_when_the_middle_runs_reached_
 def test_reset_starts_imagine_episodes_from_the_training_pool(tmp_path, ks_small_pools, fraction: float) -> None:
     """``imagine.reset_start_fraction`` 1: every imagined rollout starts at step 0 from a training-pool state
     (never a test-pool one); 0: from the real buffer's states, which lie later in their episodes."""
-    from pimbrl.training.cli_args import config_from_argv
-
-    argv = ["ks", "--method", "known-scheme", *_for_method([*DYNA_SMOKE["ks"], *TINY, *SMALL_MODEL], "known-scheme"),
-            "--imagine.reset-start-fraction", str(fraction)]  # fmt: skip
-    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    settings = {**DYNA_SMOKE_SETTINGS["ks"], **TINY_SETTINGS, **SMALL_MODEL_SETTINGS, "imagine.reset_start_fraction": fraction}
+    cfg = resolve_config(ENV_IDS["ks"], {"method": "known-scheme", **for_method(settings, "known-scheme")})
+    run = create_run(cfg, tmp_path / "run", progress=False)
     train(run)
     model = run.model
     assert model is not None and model.imagined_total > 0
@@ -384,11 +373,12 @@ def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) ->
 def test_symmetric_reset_starts_are_images_of_training_states(tmp_path, ks_small_pools) -> None:
     """``experimental.reset_start_symmetry``: each fresh imagined episode starts from a training-pool state shifted
     and possibly reflected (``u(x) -> -u(-x)``), mostly not a pool state itself, never a test-pool state."""
-    from pimbrl.training.cli_args import config_from_argv
-
-    argv = ["ks", "--method", "known-scheme", *_for_method([*DYNA_SMOKE["ks"], *TINY, *SMALL_MODEL], "known-scheme"),
-            "--imagine.reset-start-fraction", "1", "--experimental.reset-start-symmetry", "true"]  # fmt: skip
-    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    settings = {**DYNA_SMOKE_SETTINGS["ks"], **TINY_SETTINGS, **SMALL_MODEL_SETTINGS, "imagine.reset_start_fraction": 1.0}
+    cfg = resolve_config(
+        ENV_IDS["ks"],
+        {"method": "known-scheme", **for_method(settings, "known-scheme"), "experimental.reset_start_symmetry": True},
+    )
+    run = create_run(cfg, tmp_path / "run", progress=False)
     train(run)
     model = run.model
     assert model is not None

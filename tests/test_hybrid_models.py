@@ -12,11 +12,9 @@ from pimbrl.cli import main
 from pimbrl.config import ConfigError
 from pimbrl.models import HybridModel, ModelTrainer, PhysicsModel, PhysicsResidual, TransitionData, make_model
 from pimbrl.systems import Burgers, KuramotoSivashinsky, Pendulum
-from pimbrl.training import RunDirectory, create_run, train
-from pimbrl.training.cli_args import config_from_argv
+from pimbrl.training import RunDirectory, create_run, resolve_config, train
 
-from .test_dyna import DYNA_SMOKE, SMALL_MODEL, _for_method
-from .test_training import TINY
+from .settings import DYNA_SMOKE_SETTINGS, ENV_IDS, SMALL_MODEL_SETTINGS, TINY_SETTINGS, for_method
 
 
 def _ks_transitions(ks_states, n: int = 24, seed: int = 0) -> TransitionData:
@@ -158,41 +156,41 @@ def test_unknown_model_kind_and_bad_scale_are_refused() -> None:
 
 
 @pytest.mark.parametrize(
-    ("argv", "message"),
+    ("env", "overrides", "message"),
     [
-        (["cartpole", "--method", "mbrl", "--model.network", "equivariant"], "network on a PDE's grid"),
+        ("cartpole", {"method": "mbrl", "model.network": "equivariant"}, "network on a PDE's grid"),
         (
-            ["burgers", "--method", "known-scheme", "--model.correction-scale", "0.1"],
+            "burgers",
+            {"method": "known-scheme", "model.correction_scale": 0.1},
             "--model.correction-scale is a setting of --method hybrid, pihybrid, not known-scheme",
         ),
     ],
 )
-def test_model_kind_settings_that_cannot_work_are_refused(argv: list[str], message: str) -> None:
+def test_model_kind_settings_that_cannot_work_are_refused(env: str, overrides: dict, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
-        config_from_argv(argv)
+        resolve_config(ENV_IDS[env], overrides)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("env", "kind"), [("burgers", "physics"), ("burgers", "hybrid"), ("pendulum", "hybrid")])
 def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str, kind: str, tmp_path) -> None:
     method = "known-scheme" if kind == "physics" else "hybrid"
-    smoke = _for_method(DYNA_SMOKE[env], method)  # no physics loss (nor, for the known scheme, a fit)
+    settings = {**DYNA_SMOKE_SETTINGS[env], **TINY_SETTINGS, **SMALL_MODEL_SETTINGS, "checkpoint_every": 60}
     if env == "pendulum":  # end on an episode boundary (200 steps), where a resumed run extends exactly
-        smoke[smoke.index("--steps") + 1] = "200"
-    argv = [env, *smoke, *TINY, *_for_method(SMALL_MODEL, method), "--method", method, "--checkpoint-every", "60"]
-    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+        settings["total_steps"] = 200
+    settings = {"method": method, **for_method(settings, method)}  # no physics loss (nor, for the known scheme, a fit)
+    run = create_run(resolve_config(ENV_IDS[env], settings), tmp_path / "run", progress=False)
     train(run)
     rows = RunDirectory(tmp_path / "run").metrics([]).read()
-    assert all(r["model/in_use"] == "1" for r in rows if int(r["step"]) > int(smoke[smoke.index("--model.start-after") + 1]))
+    assert all(r["model/in_use"] == "1" for r in rows if int(r["step"]) > settings["model.start_after"])
     assert int(rows[-1]["imagined_total"]) > 0
     assert ("model/data_loss" in rows[-1] and rows[-1]["model/data_loss"] != "") == (kind == "hybrid")
     # a longer budget continues from the checkpoint (the physics model has no optimiser state) exactly as
     # a run given that budget from the start
-    longer = int(smoke[smoke.index("--steps") + 1]) + 60
+    longer = settings["total_steps"] + 60
     assert main(["resume", str(tmp_path / "run"), "--total-steps", str(longer), "--quiet"]) == 0
-    i = argv.index("--steps")
-    whole = [*argv[: i + 1], str(longer), *argv[i + 2 :]]
-    train(create_run(config_from_argv(whole), tmp_path / "whole", progress=False))
+    whole = resolve_config(ENV_IDS[env], {**settings, "total_steps": longer})
+    train(create_run(whole, tmp_path / "whole", progress=False))
     resumed, uninterrupted = RunDirectory(tmp_path / "run"), RunDirectory(tmp_path / "whole")
 
     def rows(log) -> list[dict]:
@@ -206,10 +204,11 @@ def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str,
 def test_a_pimbrl_runs_physics_model_steps_the_learned_coefficients(kind: str, tmp_path) -> None:
     """The model steps the run's own residual, so it predicts with the coefficients the labels identified."""
     method = "identified-scheme" if kind == "physics" else "pihybrid"
-    argv = ["burgers", *_for_method([*DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL], method), "--method", method,
-            "--env-kwargs", json.dumps({"nu": 0.013}), "--model.prior", "nu=0.01",
-            "--learn.coefficients", "nu", "--learn.lr", "0.05"]  # fmt: skip
-    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    settings = for_method({**DYNA_SMOKE_SETTINGS["burgers"], **TINY_SETTINGS, **SMALL_MODEL_SETTINGS}, method)
+    learn = {"env_kwargs": {"nu": 0.013}, "model.prior": {"nu": 0.01}, "learn.coefficients": {"nu": None}, "learn.lr": 0.05}
+    run = create_run(
+        resolve_config(ENV_IDS["burgers"], {"method": method, **settings, **learn}), tmp_path / "run", progress=False
+    )
     train(run)
     assert run.model is not None
     model, residual = run.model.model, run.model.trainer.residual

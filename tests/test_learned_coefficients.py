@@ -15,8 +15,8 @@ from pimbrl.models import ModelTrainer, PhysicsResidual, make_model
 from pimbrl.models.coefficients import LearnedCoefficients
 from pimbrl.systems import Burgers, CartPole, KuramotoSivashinsky, Pendulum, ks_initial_state_pool
 from pimbrl.training import RunDirectory, resolve_config
-from pimbrl.training.cli_args import config_from_argv
 
+from .settings import DYNA_SMOKE_SETTINGS, ENV_IDS, POOL_KWARGS, SMALL_MODEL_SETTINGS, TINY_SETTINGS
 from .test_dyna import DYNA_SMOKE, SMALL_MODEL
 from .test_training import TINY
 
@@ -207,8 +207,6 @@ def test_the_correction_is_a_pde_option_with_a_clear_error_elsewhere() -> None:
             "pimbrl/CartPole-v0",
             {"method": "pimbrl", "learn.coefficients": {"masspole": None}, "learn.correction_penalty": 1.0},
         )
-    # on the command line, 'correction' among the names is the switch
-    assert config_from_argv(["burgers", "--method", "pimbrl", "--learn.coefficients", "nu,correction"]).method.learn.correction
     with pytest.raises(ValueError, match="takes no range"):
         LearnedCoefficients(Burgers(), {"correction": (0.0, 1.0)})
 
@@ -386,16 +384,10 @@ def test_a_range_with_values_the_physics_refuses_is_an_error() -> None:
 def _ks_dyna(tmp_path, name: str):
     """The model side of a KS pimbrl run (equivariant model) whose prior's actuators are 30 % too narrow."""
     from pimbrl.training import build_run
-    from pimbrl.training.cli_args import config_from_argv
 
-    from .test_training import POOL
-
-    pool = json.loads(POOL)
-    argv = [
-        "ks", "--method", "pimbrl", "--env-kwargs", json.dumps({**pool, "actuator_width": 1.3}),
-        "--eval-episodes", "2", "--model.prior", "actuator_width=1", "--learn.coefficients", "actuator_width", *TINY,
-    ]  # fmt: skip
-    run = build_run(config_from_argv(argv), RunDirectory(tmp_path / name), progress=False)
+    settings = {"method": "pimbrl", "env_kwargs": {**POOL_KWARGS, "actuator_width": 1.3}, "eval_episodes": 2,
+                "model.prior": {"actuator_width": 1.0}, "learn.coefficients": {"actuator_width": None}, **TINY_SETTINGS}  # fmt: skip
+    run = build_run(resolve_config(ENV_IDS["ks"], settings), RunDirectory(tmp_path / name), progress=False)
     assert run.model is not None
     return run.model
 
@@ -439,14 +431,12 @@ def test_a_run_learning_the_width_feeds_it_to_the_model_and_the_imagined_steps(t
     """Burgers, equivariant model, actuators 30 % wider than the prior's: after the run (no reload), the
     forcing input and the imagined steps' physics hold the width of coefficients.json."""
     from pimbrl.training import create_run, train
-    from pimbrl.training.cli_args import config_from_argv
 
-    argv = [
-        "burgers", *DYNA_SMOKE["burgers"], *TINY, *SMALL_MODEL, "--method", "pimbrl", "--model.network", "equivariant",
-        "--env-kwargs", json.dumps({"actuator_width": WIDTH_TRUE}), "--model.prior", f"actuator_width={WIDTH_PRIOR}",
-        "--learn.coefficients", "actuator_width", "--learn.lr", "0.05",
-    ]  # fmt: skip
-    run = create_run(config_from_argv(argv), tmp_path / "run", progress=False)
+    settings = {**DYNA_SMOKE_SETTINGS["burgers"], **TINY_SETTINGS, **SMALL_MODEL_SETTINGS, "method": "pimbrl",
+                "model.network": "equivariant", "env_kwargs": {"actuator_width": WIDTH_TRUE},
+                "model.prior": {"actuator_width": WIDTH_PRIOR}, "learn.coefficients": {"actuator_width": None},
+                "learn.lr": 0.05}  # fmt: skip
+    run = create_run(resolve_config(ENV_IDS["burgers"], settings), tmp_path / "run", progress=False)
     train(run)
     width = json.loads((tmp_path / "run" / "coefficients.json").read_text())["current"]["actuator_width"]
     assert abs(width - WIDTH_TRUE) < abs(WIDTH_PRIOR - WIDTH_TRUE) / 2

@@ -16,75 +16,12 @@ from pimbrl.cli import main
 from pimbrl.training import RunDirectory
 from pimbrl.training import rundir as rundir_module
 
-from .conftest import SMALL_POOL
+from .settings import POOL_KWARGS, SMOKE_SETTINGS, TINY_SETTINGS, flags
 
-TINY = ["--agent.hidden", "32,32", "--agent.batch-size", "32", "--quiet"]
-POOL = json.dumps(
-    {
-        "pool_config": {
-            "n_train": SMALL_POOL.n_train,
-            "n_test": SMALL_POOL.n_test,
-            "batch": SMALL_POOL.batch,
-            "seed": SMALL_POOL.seed,
-        }
-    }
-)
-
-SMOKE = {
-    "ks": [
-        "--steps",
-        "40",
-        "--warmup-steps",
-        "20",
-        "--update-after",
-        "20",
-        "--update-every",
-        "20",
-        "--eval-every",
-        "40",
-        "--eval-episodes",
-        "2",
-        "--env-kwargs",
-        POOL,
-    ],
-    "burgers": ["--steps", "120", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "60", "--eval-episodes", "4"],
-    "cartpole": [
-        "--steps",
-        "200",
-        "--warmup-steps",
-        "100",
-        "--update-after",
-        "100",
-        "--eval-every",
-        "100",
-        "--eval-episodes",
-        "4",
-    ],
-    "pendulum": [
-        "--steps",
-        "200",
-        "--warmup-steps",
-        "100",
-        "--update-after",
-        "100",
-        "--eval-every",
-        "100",
-        "--eval-episodes",
-        "3",
-    ],
-    "Pendulum-v1": [
-        "--steps",
-        "200",
-        "--warmup-steps",
-        "100",
-        "--update-after",
-        "100",
-        "--eval-every",
-        "100",
-        "--eval-episodes",
-        "2",
-    ],
-}
+TINY = [*flags(TINY_SETTINGS), "--quiet"]
+POOL = json.dumps(POOL_KWARGS)
+#: the smoke runs' `pimbrl train` flags (this module tests the command line)
+SMOKE = {env: flags(settings) for env, settings in SMOKE_SETTINGS.items()}
 
 
 @pytest.mark.parametrize("env", list(SMOKE))
