@@ -28,7 +28,14 @@ from pimbrl.training import (
     train,
 )
 from pimbrl.training.cli_args import config_from_argv, parse_train_args
-from pimbrl.training.config import config_from_dict, config_to_dict, field_paths, inapplicable_reason, recipe_of
+from pimbrl.training.config import (
+    config_from_dict,
+    config_to_dict,
+    field_paths,
+    inapplicable_reason,
+    load_config_file,
+    recipe_of,
+)
 from pimbrl.training.methods import METHOD_TYPES, SECTIONS, methods_with
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -370,3 +377,67 @@ def test_unit_tests_build_runs_through_the_python_api() -> None:
     }
     assert readers <= CLI_TEST_MODULES, sorted(readers - CLI_TEST_MODULES)
     assert "flags(" in (here / "test_training.py").read_text()  # the CLI tests derive their flags from tests/settings.py
+
+
+# ---------------------------------------------------------------------------------- review: edges of the new tree
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"dyna": [1, 2]}, "dyna must be an object"),
+        ({"agent_config": [1]}, "agent_config must be an object"),
+        ({"dyna": {"learn_coefficients": ["damping"]}}, "dyna.learn_coefficients must be a string"),
+        ({"dyna": {"physics_prior": 5}}, "dyna.physics_prior must be a string"),
+        ({"dyna": {"no_such_field": 1}}, "unknown old configuration field 'dyna.no_such_field'"),
+        ({"method": "mbrl", "dyna": {"model": "physics", "physics_start": 150, "start_model_after": 300}},
+         "used the scheme from dyna.physics_start 150"),
+        ({"method": "mbrl", "dyna": {"model": "physics", "model_steps": 0}}, "never checked nor used"),
+    ],
+)  # fmt: skip
+def test_an_old_configuration_that_cannot_be_read_is_one_line(change: dict, message: str) -> None:
+    old = {"env": "pimbrl/Pendulum-v0", "method": "mbrl", **change}
+    with pytest.raises(ConfigError, match=message) as exc:
+        config_from_dict(old)
+    assert "\n" not in str(exc.value)
+
+
+def test_recipes_merge_the_user_s_keyword_arguments_and_keep_their_own_keys() -> None:
+    cfg = resolve_config(KS, {"env_kwargs": {"convection": 1.0}}, preset="best")
+    assert cfg.env_kwargs == {"pool_config": {"n_validation": 200}, "convection": 1.0}
+    from pimbrl.systems.presets import Recipe
+    from pimbrl.training.config import recipe_settings, return_scale_warnings, run_names
+
+    assert run_names(KS, {}, "best") == ("known-scheme", "td3") and run_names(KS, {"method": "mbrl"}, "best")[0] == "mbrl"
+    assert return_scale_warnings(resolve_config(KS, {}, preset="best"), "best") == []  # the recipe's own pool_config
+    with pytest.raises(ConfigError, match="method is chosen by the recipe's own 'method:' key"):
+        recipe_settings(Recipe("r", settings={"method": "pimbrl"}), model_based=False)
+
+
+def test_flags_of_the_previous_release_and_structured_flag_values(tmp_path, capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", "pendulum", "--agent.critic-layer-norm", "true"])
+    assert "--agent.critic-layer-norm is now experimental.critic_layer_norm" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match=r"^--dyna\.rollouts is now imagine\.rollouts"):
+        parse_train_args(["--dyna.rollouts", "3"])
+    with pytest.raises(ConfigError, match=r"agent_config\.gamma is now agent\.gamma"):
+        resolve_config("pimbrl/Burgers-v0", {"agent_config.gamma": 0.9})
+    assert parse_train_args(["--physics.sources", "auto"])["physics.sources"] == ()
+    assert parse_train_args(["--physics.sources", "policy, box"])["physics.sources"] == ("policy", "box")
+    with pytest.raises(ConfigError, match=r"names 'correction' and --learn\.correction is false"):
+        parse_train_args(["--learn.coefficients", "correction", "--learn.correction", "false"])
+    config = tmp_path / "run.yaml"
+    config.write_text("env: pimbrl/Burgers-v0\nmethod: {name: pimbrl, fit: {lr: 1e-3, steps: 7}}\n")
+    cfg = load_config_file(config)
+    assert cfg.method.fit.lr == 0.001 and cfg.method.fit.steps == 7
+
+
+def test_compare_and_sweep_start_from_a_named_recipe(tmp_path) -> None:
+    from pimbrl.experiments.compare import plan_runs
+    from pimbrl.experiments.sweep import load_sweep, plan_trials
+
+    specs = plan_runs(KS, ["known-scheme", "mfrl"], [0], tmp_path, {"total_steps": 100}, preset="best")
+    by = {s.label: s.config for s in specs}
+    assert by["known-scheme"].method.imagine.rollout_length == 25 and by["mfrl"].agent.gamma == 0.99
+    sweep = tmp_path / "sweep.json"
+    sweep.write_text(json.dumps({"envs": ["ks"], "methods": ["known-scheme"], "seeds": [0], "preset": "best"}))
+    (trial,) = plan_trials(load_sweep(sweep), tmp_path / "out")
+    assert trial.config == resolve_config(KS, {"method": "known-scheme", "seed": 0}, preset="best")

@@ -150,6 +150,7 @@ def test_phases_start_in_the_configured_order(tmp_path) -> None:
     assert not any(e["in_use"] for e in r2.log) and run2.model.imagined_total == 0
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_finetune_switch_stops_the_model(tmp_path) -> None:
     cfg = resolve_config(
         "pimbrl/Pendulum-v0",

@@ -95,6 +95,7 @@ def test_an_external_simulator_is_a_checked_env_driven_by_its_own_dynamics(oscil
     assert not (validation[:, None, :] == test[None, :, :]).all(-1).any()
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_pimbrl_learns_the_prior_s_wrong_coefficient_from_the_simulator(oscillator: str, tmp_path) -> None:
     run = tmp_path / "run"
     flags = ["--steps", "400", "--warmup-steps", "80", "--update-after", "80", "--eval-every", "200", "--eval-episodes", "2"]

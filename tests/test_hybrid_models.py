@@ -88,6 +88,7 @@ def test_the_hybrid_model_starts_as_the_physics_and_trains_only_its_correction(k
     assert all(g is not None for g in grads)
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_the_hybrids_correction_makes_up_for_a_wrong_prior() -> None:
     """Burgers with nu 0.013, the prior's 0.01: the correction fitted to labels beats the wrong scheme alone."""
     import gymnasium as gym

@@ -26,6 +26,7 @@ def _run(cfg, path) -> tuple[list[tuple[str, int]], Run]:
     return events, run
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 @pytest.mark.parametrize("method", ["mfrl", "pimbrl"])
 def test_the_loop_runs_its_phases_in_the_order_of_algorithm_1(method: str, tmp_path) -> None:
     cfg = _pendulum(method)
@@ -93,6 +94,7 @@ def test_streams_are_independent_and_restorable() -> None:
     np.testing.assert_array_equal(t.holdout.random(3), draws["holdout"])
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_a_checkpoint_is_the_dict_of_the_components_states(tmp_path) -> None:
     _, run = _run(_pendulum("pimbrl"), tmp_path / "run")
     state = run.run_dir.load_checkpoint()

@@ -44,6 +44,7 @@ def _run(tmp_path, name: str, agent: str, **fields):
     return run
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 @pytest.mark.parametrize("agent", ["td3", "sac"])
 def test_a_decaying_run_is_the_constant_run_until_the_decay_starts_and_ends_at_the_final_rates(tmp_path, agent) -> None:
     plain = _run(tmp_path, "plain", agent)

@@ -20,6 +20,7 @@ FLAGS = ["--steps", "600", "--warmup-steps", "200", "--update-after", "200", "--
 FLAGS += ["--model.start-after", "200", "--imagine.rollout-length", "5", "--check.threshold", "1.0", "--checkpoint-every", "200"]
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_mbrl_runs_on_gymnasium_s_own_pendulum_with_a_learned_reward(tmp_path) -> None:
     run = tmp_path / "run"
     assert main(["train", "Pendulum-v1", "--method", "mbrl", *FLAGS, "--run-dir", str(run), *TINY]) == 0

@@ -208,6 +208,7 @@ def test_the_examples_train_through_the_command_line(example: str, alias: str, m
     assert ok.returncode == 0, ok.stderr
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_resume_without_the_import_is_a_one_line_error_naming_it(tmp_path) -> None:
     code = textwrap.dedent(
         f"""
@@ -389,6 +390,7 @@ def test_a_system_without_a_preset_is_told_so_at_start(vanderpol: str, tmp_path,
     assert "has no preset" not in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_a_sweep_trial_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> None:
     """A Ray worker is a fresh process: the trial carries its --import and loads it there."""
     plan = textwrap.dedent(

@@ -34,8 +34,13 @@ class _Parser(argparse.ArgumentParser):
 
     def fail_unknown(self, unknown: list[str]) -> None:
         """Exit with the error for the unrecognised arguments ``unknown``, suggesting the closest flag."""
+        from .training.legacy import old_flag_message
+
         flags = [o for a in self._actions for o in a.option_strings]
         first = next((u.split("=")[0] for u in unknown if u.startswith("-")), None)
+        old = old_flag_message(first) if first else None
+        if old is not None:  # a flag of the previous release: its new name
+            self.error(old)
         hint = _suggestion(first, flags, quote=False) if first else ""
         self.error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
 
@@ -314,6 +319,10 @@ def _cmd_model_eval(args: argparse.Namespace) -> int:
             value = parse(text)
             fields[flag] = {k: list(v) if isinstance(v, tuple) else v for k, v in value.items()}
     physics = overrides_from_args(args, PhysicsLoss, prefix="physics.")
+    if "sources" in physics:
+        from .training.cli_args import read_sources
+
+        physics["sources"] = read_sources(physics["sources"])
     cfg = dataclasses.replace(ModelEvalConfig(), **fields)
     cfg = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, **physics))
     if cfg.labels:  # the study: errors against the number of labelled transitions
@@ -360,8 +369,8 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
     if not args.no_run:
         _check_run_dir(args.run_dir)
         warned = set()
-        for spec in plan_runs(env_id, methods, seeds[:1], Path(args.run_dir), overrides):
-            for line in config_warnings(spec.config):
+        for spec in plan_runs(env_id, methods, seeds[:1], Path(args.run_dir), overrides, args.preset):
+            for line in config_warnings(spec.config, args.preset):
                 if (spec.label, line) not in warned:
                     warned.add((spec.label, line))
                     print(f"pimbrl compare: warning: {spec.label}: {line}", file=sys.stderr)
@@ -376,6 +385,7 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         run=not args.no_run,
         rerun=args.rerun,
         imports=args.imports,
+        preset=args.preset,
     )
     thr = result["threshold"]
     print(f"{env_id}: threshold {thr}")
@@ -564,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     me.add_argument("env", help="ks | burgers | cartpole | pendulum, or a system of yours that declares an out-of-sample set")
     me.add_argument("--run-dir", required=True, help="output directory (model_errors.csv, summary.json, model_errors.png)")
-    add_arguments(me, ModelEvalConfig)
+    add_arguments(me, ModelEvalConfig, default_note="default {default!r} where the system's model-eval settings set none")
     add_arguments(me, PhysicsLoss, prefix="physics.", skip=("start_after", "alone_from"))
     me.add_argument(
         "--env-coefficients",
@@ -595,16 +605,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="run several methods x seeds on one environment (resumable) and write curves.png and summary.csv",
         description="Run every method and seed (finished runs are skipped, interrupted ones resumed), then "
         "write DIR/curves.png, DIR/summary.csv and DIR/summary.json. Arguments after -- are `pimbrl train` "
-        "flags; each goes to the runs it applies to (e.g. --dyna.* to mbrl and pimbrl, not mfrl), and one "
+        "flags; each goes to the runs it applies to (e.g. --fit.* to the methods with a model, not mfrl), and one "
         "that applies to none of the compared methods is an error.",
     )
     cp.add_argument("env")
-    cp.add_argument("--methods", default="mfrl,mbrl,pimbrl", help="comma-separated: mfrl, mbrl, pimbrl, mfrl-matched")
+    cp.add_argument(
+        "--methods",
+        default="mfrl,mbrl,pimbrl",
+        help="comma-separated: mfrl, mbrl, pimbrl, known-scheme, identified-scheme, hybrid, pihybrid, and mfrl-matched "
+        "(mfrl with the model-based runs' updates per real step)",
+    )
+    cp.add_argument(
+        "--preset", default=None, metavar="RECIPE", help="the system's recipe every run starts from (default: its default)"
+    )
     cp.add_argument("--seeds", default="3", help="a count (3 -> seeds 0,1,2) or a list (0,1,2)")
     cp.add_argument("--run-dir", required=True)
     cp.add_argument("--jobs", type=int, default=1, help="runs in parallel (each one thread)")
     cp.add_argument("--steps", type=int, default=None, help="real steps of every run")
-    cp.add_argument("--threshold", type=float, default=None, help="return that counts as solved (default: the preset's)")
+    cp.add_argument("--threshold", type=float, default=None, help="return that counts as solved (default: the recipe's)")
     cp.add_argument("--no-run", action="store_true", help="start nothing: summarise the runs as they are (finished or not)")
     cp.add_argument(
         "--rerun",

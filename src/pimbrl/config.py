@@ -32,6 +32,7 @@ __all__ = [
     "add_arguments",
     "at_most",
     "check_env_id",
+    "load_yaml",
     "overrides_from_args",
     "param",
     "parse_learned",
@@ -231,7 +232,7 @@ def _parser_for(tp: Any, name: str) -> Callable[[str], Any]:
                 raise ValueError(text)
             if base is tuple:
                 item = typing.get_args(_strip_optional(tp))[0]
-                return tuple(item(x) for x in text.split(",") if x.strip())
+                return tuple(item(x.strip()) for x in text.split(",") if x.strip())
             if base is int:
                 return int(float(text)) if float(text).is_integer() else int(text)
             return base(text)
@@ -246,11 +247,18 @@ def _strip_optional(tp: Any) -> Any:
     return args[0] if typing.get_origin(tp) in (typing.Union, types.UnionType) and len(args) == 1 else tp
 
 
-def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", skip: tuple[str, ...] = ()) -> None:
+def add_arguments(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    prefix: str = "",
+    skip: tuple[str, ...] = (),
+    default_note: str = "default {default!r}",
+) -> None:
     """Add ``--<prefix><field>`` options (dashes for underscores) for every scalar field of ``cls``.
 
-    Defaults are :data:`UNSET` so that only the flags actually given override a preset; ``none`` given
-    for an optional field sets it to ``None``.
+    ``default_note`` is the help's note on the default (``{default!r}`` is filled in). Defaults are
+    :data:`UNSET` so that only the flags actually given override a preset; ``none`` given for an optional
+    field sets it to ``None``.
     """
     hints = _field_types(cls)
     for f in dataclasses.fields(cls):
@@ -270,7 +278,7 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "", 
             type=_parser_for(tp, f"{prefix}{f.name}"),
             default=UNSET,
             metavar=_base_type(tp).__name__.upper() if isinstance(_base_type(tp), type) else "VALUE",
-            help=f"{f.metadata.get('help', '')} (default {default!r} where the recipe sets none; --print-config shows the run's)",
+            help=f"{f.metadata.get('help', '')} ({default_note.format(default=default)})",
         )
 
 
@@ -329,6 +337,28 @@ def typed_value(tp: Any, value: Any, name: str) -> Any:
             return dict(value)
         raise ConfigError(f"{name} must be an object (a dict), got {value!r}")
     return value
+
+
+# ------------------------------------------------------------------ YAML
+#: a float as YAML 1.2 writes it: PyYAML's YAML 1.1 rule reads ``1e-3`` (no dot) as a string
+_YAML_FLOAT = r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$"""
+
+
+def load_yaml(text: str) -> Any:
+    """YAML data (``yaml.safe_load``: no object is constructed) with YAML 1.2's floats (``1e-3`` is a number)."""
+    import re
+
+    import yaml
+
+    class _Loader(yaml.SafeLoader):
+        pass
+
+    _Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(_YAML_FLOAT, re.X), list("-+0123456789."))
+    return yaml.load(text, Loader=_Loader)
 
 
 # ------------------------------------------------------------------ physical coefficients

@@ -56,6 +56,7 @@ from ..training.config import (
     config_to_dict,
     did_you_mean,
     resolve_config,
+    run_names,
     typed_overrides,
 )
 from ..training.methods import METHODS
@@ -112,6 +113,7 @@ def plan_runs(
     seeds: Sequence[int],
     root: Path,
     overrides: Mapping[str, Any] | Sequence[str] | None = None,
+    preset: str | None = None,
 ) -> list[RunSpec]:
     """The runs of a comparison, each with its resolved configuration.
 
@@ -131,7 +133,7 @@ def plan_runs(
     specs = []
     used: set[str] = set()
     reasons: dict[str, str] = {}
-    agent = overrides.get("agent", "td3")
+    agent = run_names(env_id, overrides, preset)[1]
     for label in methods:
         if label not in COMPARE_METHODS:
             raise ValueError(
@@ -140,12 +142,12 @@ def plan_runs(
         method = "mfrl" if label == "mfrl-matched" else label
         fields: dict[str, Any] = {"method": method}
         if label == "mfrl-matched":  # the user's utd wins
-            fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}).utd
+            fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}, preset=preset).utd
         applied = applicable_overrides(env_id, method, agent, overrides, reasons)
         fields.update(applied)
         used.update(applied)
         for seed in seeds:
-            cfg = resolve_config(env_id, {**fields, "seed": seed})
+            cfg = resolve_config(env_id, {**fields, "seed": seed}, preset=preset)
             specs.append(RunSpec(label, seed, root / label / f"seed{seed}", cfg))
     unused = [reasons[k] for k in overrides if k not in used]
     if unused:
@@ -589,8 +591,11 @@ def compare(
     rerun: bool = False,
     status: bool = True,
     imports: Sequence[str] = (),
+    preset: str | None = None,
 ) -> dict[str, Any]:
     """Run (what is missing of) a comparison and write its figure and tables.
+
+    ``preset`` names the system's recipe every run starts from (``None``: its default).
 
     With ``run=False`` nothing is started: the runs are summarised as they stand (unfinished ones up to
     their last evaluation). A run directory holding a run of another configuration is an error, or, with
@@ -603,7 +608,7 @@ def compare(
     in the runs' configurations, add it to ``overrides``.
     """
     root = Path(root)
-    specs = plan_runs(env_id, methods, seeds, root, overrides)  # every configuration checked before anything runs
+    specs = plan_runs(env_id, methods, seeds, root, overrides, preset)  # every configuration checked before anything runs
     for spec in specs:  # DIR/<method>/seed<k>: no link on the way below DIR (it would lead the runs elsewhere)
         check_below(root, spec.path.relative_to(root), "directory")
     if run:
@@ -611,7 +616,7 @@ def compare(
         root.mkdir(parents=True, exist_ok=True)
     failed = run_all(specs, jobs=jobs, log=log, status=status, imports=imports) if run else []
     if threshold is None:
-        threshold = resolve_config(env_id, {"method": "mfrl"}).threshold
+        threshold = resolve_config(env_id, {"method": "mfrl"}, preset=preset).threshold
     result = summarize_runs(specs, threshold)
     result["failed"] = [f"{s.label}/seed{s.seed}" for s in failed]
     if result["runs"]:

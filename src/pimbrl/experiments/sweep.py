@@ -7,21 +7,23 @@ A sweep file (JSON, or TOML on Python >= 3.11) describes the grid::
       "envs": ["ks"],
       "methods": ["pimbrl"],
       "seeds": [0, 1],
-      "grid": {"dyna.rollout_length": [3, 8, 40, 120]},
+      "grid": {"imagine.rollout_length": [3, 8, 40, 120]},
       "overrides": {"total_steps": 60000},
-      "threshold": -55
+      "threshold": -55,
+      "preset": "default"
     }
 
-``grid`` keys are configuration fields (``utd``, ``agent.gamma``, ``dyna.threshold``, ...); every
+``grid`` keys are configuration fields (``utd``, ``agent.gamma``, ``check.threshold``, ...); every
 combination of their values is one setting. ``overrides`` sets fields for every trial (field paths ->
 values, like the grid). Values are type-checked against their fields when the file is read: a float for an
-int field (``"dyna.rollout_length": [1.7]``) or a number for a bool field is an error, as is an unknown
+int field (``"imagine.rollout_length": [1.7]``) or a number for a bool field is an error, as is an unknown
 field. ``train_args``, a list of `pimbrl train` flags (``["--steps", "60000"]``), is still accepted and
-read into overrides once, when the file is loaded.
+read into overrides once, when the file is loaded. ``preset`` names the systems' recipe every trial starts
+from (default: each system's default recipe).
 
-A grid key must apply to every method and environment of the sweep (``dyna.*`` with mfrl is an error,
-since every setting would be the same run); an override applies to the trials it fits (``dyna.*`` to the
-mbrl and pimbrl trials, an agent field of SAC to SAC trials) and is an error only where it fits none.
+A grid key must apply to every method and environment of the sweep (``imagine.*`` with mfrl is an error,
+since every setting would be the same run); an override applies to the trials it fits (``fit.*`` to the
+trials of methods with a model, an agent field of SAC to SAC trials) and is an error only where it fits none.
 
 Every (env, method, setting, seed) is one trial: its resolved :class:`~pimbrl.training.TrainConfig`
 and a resumable run directory ``DIR/<env>/<method>/<setting>/seed<k>``. Every trial's configuration is
@@ -52,7 +54,7 @@ from ..config import ConfigError, typed_value
 from ..fileio import atomic_write_bytes, check_below
 from ..training import METHODS, RunDirectory, TrainConfig
 from ..training.cli_args import parse_train_args
-from ..training.config import applicable_overrides, did_you_mean, resolve_config, typed_overrides
+from ..training.config import applicable_overrides, did_you_mean, resolve_config, run_names, typed_overrides
 
 __all__ = ["SweepSpec", "Trial", "execute_trial", "load_sweep", "plan_trials", "ray_available", "run_sweep"]
 
@@ -75,6 +77,8 @@ class SweepSpec:
     grid: dict[str, tuple[Any, ...]] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
     threshold: float | None = None
+    #: the systems' recipe every trial starts from (``None``: each system's default)
+    preset: str | None = None
 
 
 @dataclass(frozen=True)
@@ -101,7 +105,7 @@ class Trial:
         return f"{self.env.split('/')[-1]} {self.method} {self.setting}"
 
 
-_KEYS = {"name", "envs", "methods", "seeds", "grid", "overrides", "train_args", "threshold"}
+_KEYS = {"name", "envs", "methods", "seeds", "grid", "overrides", "train_args", "threshold", "preset"}
 
 
 def load_sweep(path: str | Path) -> SweepSpec:
@@ -190,6 +194,9 @@ def load_sweep(path: str | Path) -> SweepSpec:
             threshold = typed_value(float, threshold, "'threshold'")
             if "threshold" in overrides:
                 raise ConfigError("threshold is set both as 'threshold' and as an override")
+        preset = data.get("preset")
+        if preset is not None and not isinstance(preset, str):
+            raise ConfigError(f"'preset' must be the name of a recipe (e.g. paper), got {preset!r}")
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     return SweepSpec(
@@ -200,6 +207,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
         grid={k: tuple(v) for k, v in grid.items()},
         overrides=overrides,
         threshold=threshold,
+        preset=preset,
     )
 
 
@@ -235,14 +243,14 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
             params = tuple(zip(keys, values))
             setting = ",".join(f"{k}={v}" for k, v in params) or "default"
             swept = typed_overrides(dict(params))
-            agent = swept.get("agent", fixed.get("agent", "td3"))
+            agent = run_names(env_id, {**fixed, **swept}, spec.preset)[1]
             fields = dict(swept)
             applied = applicable_overrides(env_id, method, agent, fixed, reasons)
             fields.update(applied)
             used.update(applied)
             for seed in spec.seeds:
                 try:
-                    cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed})
+                    cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed}, preset=spec.preset)
                 except ConfigError as exc:
                     raise ConfigError(f"sweep {spec.name}, trial {env_id} {method} {setting} seed {seed}: {exc}") from None
                 path = root / env_id.split("/")[-1] / method / setting / f"seed{seed}"

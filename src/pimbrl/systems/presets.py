@@ -73,9 +73,11 @@ def _read(source: str | Path | Mapping[str, Any], where: str) -> Mapping[str, An
         return source
     import yaml
 
+    from ..config import load_yaml
+
     path = Path(source)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except OSError as exc:
         raise PresetError(f"{where}: cannot read the preset file {path} ({exc.strerror or exc})") from None
     except yaml.YAMLError as exc:

@@ -25,6 +25,7 @@ from typing import Any
 from ..agents.config import AGENT_NAMES, AGENT_TYPES
 from ..config import UNSET, ConfigError, add_arguments, parse_learned, parse_prior
 from .config import Experimental, TrainConfig, resolve_config
+from .legacy import old_flag_message
 from .methods import METHOD_TYPES, METHODS, SECTIONS, methods_with
 
 __all__ = [
@@ -34,11 +35,14 @@ __all__ = [
     "full_help",
     "overrides_from_namespace",
     "parse_train_args",
+    "read_sources",
 ]
 
 #: the run settings ``pimbrl train --help`` shows (with --method, --agent, --preset, --steps, --env-kwargs)
 MAIN_FLAGS = ("seed", "utd", "eval_every", "eval_episodes", "threshold", "threads", "device", "tensorboard")
 _RUN_SKIP = ("env", "env_kwargs", "method", "agent", "experimental")
+#: the help's note on a setting's default: a system's recipe may set another
+RECIPE_NOTE = "default {default!r} where the recipe sets none; --print-config shows the run's"
 
 
 def _own(cls: type) -> list[dataclasses.Field]:
@@ -79,7 +83,7 @@ def add_train_flags(parser: argparse.ArgumentParser, show_all: bool = False) -> 
         "--env-kwargs", dest="env_kwargs_json", default=None, help="JSON object of keyword arguments for gymnasium.make"
     )
     start = len(parser._actions)
-    add_arguments(parser, TrainConfig, skip=_RUN_SKIP)
+    add_arguments(parser, TrainConfig, skip=_RUN_SKIP, default_note=RECIPE_NOTE)
     if not show_all:
         for action in parser._actions[start:]:
             if action.dest not in MAIN_FLAGS:
@@ -95,7 +99,7 @@ def add_train_flags(parser: argparse.ArgumentParser, show_all: bool = False) -> 
             fields = _own(cls) if name == "model" else list(dataclasses.fields(cls))
             skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen or f not in fields)
             before = len(parser._actions)
-            add_arguments(target, cls, prefix=prefix, skip=skip)  # type: ignore[arg-type]
+            add_arguments(target, cls, prefix=prefix, skip=skip, default_note=RECIPE_NOTE)  # type: ignore[arg-type]
             for action in parser._actions[before:]:
                 path = action.dest
                 seen.add(path.split(".", 1)[1])
@@ -151,17 +155,30 @@ def overrides_from_namespace(args: argparse.Namespace) -> dict[str, Any]:
             raise ValueError(f'--env-kwargs must be a JSON object, e.g. \'{{"reward": "physical"}}\': {exc}') from None
         if not isinstance(overrides["env_kwargs"], dict):
             raise ValueError(f"--env-kwargs must be a JSON object, got {args.env_kwargs_json}")
+    if "physics.sources" in overrides:
+        overrides["physics.sources"] = read_sources(overrides["physics.sources"])
     if "model.prior" in overrides:
         overrides["model.prior"] = parse_prior(overrides["model.prior"])
     if "learn.coefficients" in overrides:
         learned = parse_learned(overrides["learn.coefficients"])
         if "correction" in learned:
+            if overrides.get("learn.correction") is False:
+                raise ConfigError("--learn.coefficients names 'correction' and --learn.correction is false: give one of them")
             overrides["learn.correction"] = True
         overrides["learn.coefficients"] = {n: None if r is None else list(r) for n, r in learned.items() if n != "correction"}
     return overrides
 
 
 _RUN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - set(_RUN_SKIP)
+#: what `--physics.sources` takes for every source the system offers
+ALL_SOURCES = ("auto", "all", "none")
+
+
+def read_sources(names: tuple[str, ...]) -> tuple[str, ...]:
+    """``--physics.sources``: a list of names, or ``auto`` (also ``all``, ``none`` or nothing) for every source."""
+    return () if len(names) <= 1 and (not names or names[0] in ALL_SOURCES) else names
+
+
 _PREFIXES = ("agent.", "model.", "experimental.", *(f"{name}." for name in SECTIONS))
 
 
@@ -186,6 +203,9 @@ def _parse(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Nam
         with contextlib.redirect_stderr(err):
             return parser.parse_args(list(argv))
     except SystemExit:
+        old = next((old_flag_message(a.split("=")[0]) for a in argv if old_flag_message(a.split("=")[0])), None)
+        if old is not None:  # a flag of the previous release: its new name
+            raise ConfigError(old) from None
         lines = err.getvalue().strip().splitlines() or ["unreadable arguments"]
         raise ConfigError(f"bad train arguments {' '.join(argv)!r}: {lines[-1].removeprefix('pimbrl train: error: ')}") from None
 

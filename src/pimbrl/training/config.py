@@ -31,6 +31,7 @@ from ..config import (
     at_most,
     check_env_id,
     in_range,
+    load_yaml,
     non_negative,
     one_of,
     param,
@@ -70,8 +71,10 @@ __all__ = [
     "load_config_file",
     "preset_note",
     "recipe_of",
+    "recipe_settings",
     "resolve_config",
     "return_scale_warnings",
+    "run_names",
     "setting_type",
     "typed_overrides",
 ]
@@ -381,6 +384,23 @@ def _build(env: str, method: str, agent: str, flat: Mapping[str, Any]) -> TrainC
         raise ConfigError(str(exc)) from None
 
 
+def recipe_settings(recipe: Any, model_based: bool) -> dict[str, Any]:
+    """A recipe's settings for a method with or without a model, typed (the method and agent are its own keys)."""
+    settings = recipe.for_method(model_based)
+    for key in ("method", "agent"):
+        if key in settings:
+            raise ConfigError(f"recipe {recipe.name!r}: {key} is chosen by the recipe's own '{key}:' key, not among its settings")
+    return typed_overrides(settings)
+
+
+def run_names(env: str, overrides: Mapping[str, Any], preset: str | None = None) -> tuple[str, str]:
+    """The method and the agent a run of ``env`` gets: the overrides', else the recipe's, else mfrl and td3."""
+    recipe = recipe_of(env, preset)
+    method = overrides.get("method") or (recipe.method if recipe is not None else "") or "mfrl"
+    agent = overrides.get("agent") or (recipe.agent if recipe is not None else "") or "td3"
+    return str(method), str(agent)
+
+
 def resolve_config(env: str, overrides: Mapping[str, Any] | None = None, *, preset: str | None = None) -> TrainConfig:
     """The run's configuration: the types' defaults, then the system's recipe, then the overrides; validated.
 
@@ -391,8 +411,9 @@ def resolve_config(env: str, overrides: Mapping[str, Any] | None = None, *, pres
     """
     typed = typed_overrides(overrides or {})
     recipe = recipe_of(env, preset)
-    method = typed.pop("method", None) or (recipe.method if recipe is not None else "") or "mfrl"
-    agent = typed.pop("agent", None) or (recipe.agent if recipe is not None else "") or "td3"
+    method, agent = run_names(env, typed, preset)
+    typed.pop("method", None)
+    typed.pop("agent", None)
     if method not in METHODS:
         raise ConfigError(f"the recipe's method {method!r} is not one of {', '.join(METHODS)}")
     if agent not in AGENT_NAMES:
@@ -401,11 +422,12 @@ def resolve_config(env: str, overrides: Mapping[str, Any] | None = None, *, pres
         reason = inapplicable_reason(env, method, agent, path)
         if reason is not None:
             raise ConfigError(reason)
-    base = {} if recipe is None else typed_overrides(recipe.for_method(method != "mfrl"))
-    base.pop("method", None)
-    base.pop("agent", None)
+    base = {} if recipe is None else recipe_settings(recipe, method != "mfrl")
     base = {k: v for k, v in base.items() if has_setting(method, agent, k)}
-    cfg = resolve_model(_build(env, method, agent, {**base, **typed}))
+    merged = {**base, **typed}
+    if "env_kwargs" in base and "env_kwargs" in typed:  # the user's keyword arguments go on top of the recipe's
+        merged["env_kwargs"] = {**base["env_kwargs"], **typed["env_kwargs"]}
+    cfg = resolve_model(_build(env, method, agent, merged))
     validate(cfg)
     _check_runnable(cfg)
     return cfg
@@ -612,7 +634,7 @@ def check_physics_sources(env: str, sources: tuple[str, ...]) -> None:
     bad = [name for name in sources if name not in have]
     if bad:
         raise ConfigError(
-            f"--physics.sources: {', '.join(bad)} not available for {env}; choose from {', '.join(have)} (none: all)"
+            f"--physics.sources: {', '.join(bad)} not available for {env}; choose from {', '.join(have)} (auto: all)"
         )
 
 
@@ -641,7 +663,9 @@ def return_scale_warnings(cfg: TrainConfig, preset: str | None = None) -> list[s
     if finetune is not None and cfg.model_based and cfg.dyna.finetune.at_return == finetune:
         fix = "give --finetune.at-return for this system, or --finetune.at-return none never to switch"
         kept.append(("finetune.at_return", finetune, "switches to model-free fine-tuning", fix))
-    changed = changed_env_kwargs(cfg.env, cfg.env_kwargs) if kept else []
+    own = settings.get("env_kwargs") or {}  # the recipe's own keyword arguments set the scale its values were read on
+    given = {k: v for k, v in cfg.env_kwargs.items() if k not in own or own[k] != v}
+    changed = changed_env_kwargs(cfg.env, given) if kept else []
     if not changed:
         return []
     return [
@@ -720,12 +744,7 @@ def load_config_file(path: str | Path) -> TrainConfig:
         raise FileNotFoundError(f"configuration file {path} does not exist")
     text = path.read_text()
     try:
-        if path.suffix in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text)
-        else:
-            data = json.loads(text)
+        data = load_yaml(text) if path.suffix in (".yaml", ".yml") else json.loads(text)
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON ({exc})") from None
     except Exception as exc:  # yaml.YAMLError: imported lazily

@@ -15,7 +15,16 @@ from typing import Any
 
 from ..config import ConfigError, parse_learned, parse_prior
 
-__all__ = ["RENAMED", "is_legacy", "legacy_method", "method_and_agent", "new_from_legacy", "renamed_message"]
+__all__ = [
+    "RENAMED",
+    "flag_of_path",
+    "is_legacy",
+    "legacy_method",
+    "method_and_agent",
+    "new_from_legacy",
+    "old_flag_message",
+    "renamed_message",
+]
 
 #: old path -> new path (``None``: the setting chose the method, see :func:`legacy_method`)
 RENAMED: dict[str, str | None] = {
@@ -59,11 +68,25 @@ RENAMED: dict[str, str | None] = {
 }
 
 
+def flag_of_path(path: str) -> str:
+    """``imagine.rollout_length`` -> ``--imagine.rollout-length``."""
+    return "--" + path.replace("_", "-")
+
+
+def old_flag_message(flag: str) -> str | None:
+    """A one-line message for a `pimbrl train` flag of the previous release (``None`` for any other flag)."""
+    if not flag.startswith("--"):
+        return None
+    path = flag[2:].replace("-", "_")
+    message = renamed_message(path)
+    return None if message is None else message.replace(path, flag, 1)
+
+
 def renamed_message(path: str) -> str | None:
     """A one-line message for an old setting's path (``None`` for any other path)."""
     key = path.replace("agent_config.", "agent.")
     if key not in RENAMED:
-        return None
+        return f"{path} is now {key} ({flag_of_path(key)})" if key != path else None
     new = RENAMED[key]
     if new is None:
         return (
@@ -71,13 +94,16 @@ def renamed_message(path: str) -> str | None:
             "or mlp; --method known-scheme (was physics under mbrl), identified-scheme (physics under pimbrl with "
             "learned coefficients), hybrid or pihybrid (hybrid under mbrl or pimbrl)"
         )
-    flag = "--" + new.replace("_", "-")
-    return f"{path} is now {new} ({flag})"
+    return f"{path} is now {new} ({flag_of_path(new)})"
 
 
 def is_legacy(data: Mapping[str, Any]) -> bool:
-    """Whether a whole configuration (``config.json``'s ``config``) is in the old flat form."""
-    return "dyna" in data or "agent_config" in data or isinstance(data.get("method"), str)
+    """Whether a whole configuration (``config.json``'s ``config``) is in the old flat form.
+
+    The old form names its method with a string; the new one with an object (``{"name": "pimbrl", ...}``).
+    """
+    method = data.get("method")
+    return isinstance(method, str) or (method is None and ("dyna" in data or "agent_config" in data))
 
 
 def legacy_method(method: str, model: str, learn: str) -> str:
@@ -104,6 +130,10 @@ def method_and_agent(config: Mapping[str, Any]) -> tuple[str, str]:
     return str(method_name or "mfrl"), str(agent_name or "td3")
 
 
+#: the old fields that were option strings (read into structured values)
+_TEXTS = ("physics_prior", "physics_sources", "learn_coefficients", "model")
+
+
 def _value(new_path: str, value: Any) -> Any:
     """An old field's value in its new form (the option strings become structured values)."""
     if new_path == "model.prior":
@@ -111,6 +141,40 @@ def _value(new_path: str, value: Any) -> Any:
     if new_path == "physics.sources":
         return [] if value == "auto" else [s.strip() for s in value.split(",") if s.strip()]
     return value
+
+
+def _section(data: Mapping[str, Any], key: str) -> dict[str, Any]:
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{key} must be an object (the old form's {key} section), got {value!r}")
+    for name in _TEXTS if key == "dyna" else ():
+        if name in value and not isinstance(value[name], str):
+            raise ConfigError(f"dyna.{name} must be a string (the old form's text), got {value[name]!r}")
+    return dict(value)
+
+
+def _check_scheme_runs(method: str, dyna: Mapping[str, Any]) -> None:
+    """Refuse, in one line, the old scheme runs the typed methods cannot re-create exactly.
+
+    The scheme as the model (nothing trained) was checked from ``physics_start`` on where that came before
+    ``start_model_after``; and with ``model_steps`` 0 it was never checked, so never used.
+    """
+    if method not in ("known-scheme", "identified-scheme"):
+        return
+    start, labels = dyna.get("physics_start"), dyna.get("start_model_after", 6_000)
+    if isinstance(start, int) and isinstance(labels, int) and start < labels:
+        fix = f"model.start_after {start}" if method == "known-scheme" else "no equivalent"
+        raise ConfigError(
+            f"this old {method} run used the scheme from dyna.physics_start {start}, before dyna.start_model_after "
+            f"{labels}; the typed method has {fix}: give it explicitly (docs/training.md)"
+        )
+    if dyna.get("model_steps") == 0:
+        raise ConfigError(
+            f"this old {method} run had dyna.model_steps 0, so its scheme was never checked nor used (an mfrl run in "
+            "effect); re-create it as --method mfrl"
+        )
 
 
 def new_from_legacy(data: Mapping[str, Any], has: Any) -> dict[str, Any]:
@@ -121,11 +185,12 @@ def new_from_legacy(data: Mapping[str, Any], has: Any) -> dict[str, Any]:
     with ``"method"`` and ``"agent"`` set.
     """
     top = {k: v for k, v in data.items() if k not in ("dyna", "agent_config", "env")}
-    dyna = dict(data.get("dyna") or {})
-    agent = dict(data.get("agent_config") or {})
+    dyna = _section(data, "dyna")
+    agent = _section(data, "agent_config")
     method = legacy_method(
         str(top.get("method", "mfrl")), str(dyna.get("model", "convlstm")), str(dyna.get("learn_coefficients", ""))
     )
+    _check_scheme_runs(method, dyna)
     out: dict[str, Any] = {"method": method, "agent": top.pop("agent", "td3")}
     top.pop("method", None)
     for key, value in top.items():
