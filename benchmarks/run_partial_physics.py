@@ -51,11 +51,11 @@ from pathlib import Path
 
 import _common
 
-from pimbrl.cli import config_warnings
 from pimbrl.config import parse_prior
 from pimbrl.experiments.compare import RunSpec, check_reuse, median_steps_to_threshold, run_all, steps_text
 from pimbrl.models.coefficients import CORRECTION_OF
 from pimbrl.training import RunDirectory
+from pimbrl.training.advice import config_warnings
 from pimbrl.training.cli_args import config_from_argv
 from pimbrl.training.rundir import steps_to_threshold
 

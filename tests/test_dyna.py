@@ -21,6 +21,11 @@ SMALL_MODEL = flags(SMALL_MODEL_SETTINGS)
 DYNA_SMOKE = {env: flags(settings) for env, settings in DYNA_SMOKE_SETTINGS.items()}
 
 
+#: a short Pendulum run with small networks and its model from step 100
+SHORT_PENDULUM = {"total_steps": 300, "warmup_steps": 50, "update_after": 100, "eval_every": 300, "eval_episodes": 2,
+                  "agent.hidden": (16, 16), "agent.batch_size": 16, "model.start_after": 100}  # fmt: skip
+
+
 def _for_method(args: list[str], method: str) -> list[str]:
     """Flags ``args`` without the settings ``method`` does not have (mbrl: no physics loss; given, an error)."""
     out: list[str] = []
@@ -132,14 +137,7 @@ def test_phases_start_in_the_configured_order(tmp_path) -> None:
         "pimbrl/Pendulum-v0",
         {
             "method": "mbrl",
-            "total_steps": 300,
-            "warmup_steps": 50,
-            "update_after": 100,
-            "eval_every": 300,
-            "eval_episodes": 2,
-            "agent.hidden": (16, 16),
-            "agent.batch_size": 16,
-            "model.start_after": 100,
+            **SHORT_PENDULUM,
             "fit.steps": 1,
             "fit.batch_size": 16,
             "check.threshold": 1e-12,
@@ -348,14 +346,7 @@ def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) ->
         "pimbrl/Pendulum-v0",
         {
             "method": "known-scheme",
-            "total_steps": 300,
-            "warmup_steps": 50,
-            "update_after": 100,
-            "eval_every": 300,
-            "eval_episodes": 2,
-            "agent.hidden": (16, 16),
-            "agent.batch_size": 16,
-            "model.start_after": 100,
+            **SHORT_PENDULUM,
             "imagine.rollouts": 3,
             "imagine.rollout_length": 2,
             "check.threshold": 1e3,

@@ -15,7 +15,7 @@ from typing import Any
 
 from .config import ConfigError, add_arguments, overrides_from_args
 
-__all__ = ["build_parser", "config_warnings", "main"]
+__all__ = ["build_parser", "main"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -109,11 +109,10 @@ def _train_config_from_args(args: argparse.Namespace):
     return resolve_config(resolve_env_id(args.env), overrides, preset=args.preset)
 
 
-def config_warnings(cfg: Any, preset: str | None = None) -> list[str]:
-    """:func:`pimbrl.training.advice.config_warnings` (kept here for the command line's callers)."""
-    from .training.advice import config_warnings as warnings
+def _config_warnings(cfg: Any, preset: str | None = None) -> list[str]:
+    from .training.advice import config_warnings
 
-    return warnings(cfg, preset)
+    return config_warnings(cfg, preset)
 
 
 def _check_run_dir(path: str | Path, flag: str = "--run-dir") -> None:
@@ -153,7 +152,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(full_help())
         return 0
     cfg = _train_config_from_args(args)
-    for line in config_warnings(cfg, args.preset):
+    for line in _config_warnings(cfg, args.preset):
         print(f"pimbrl train: warning: {line}", file=sys.stderr)
     if args.preset is not None and args.config is None:
         from .training.config import recipe_of
@@ -370,7 +369,7 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         _check_run_dir(args.run_dir)
         warned = set()
         for spec in plan_runs(env_id, methods, seeds[:1], Path(args.run_dir), overrides, args.preset):
-            for line in config_warnings(spec.config, args.preset):
+            for line in _config_warnings(spec.config, args.preset):
                 if (spec.label, line) not in warned:
                     warned.add((spec.label, line))
                     print(f"pimbrl compare: warning: {spec.label}: {line}", file=sys.stderr)
