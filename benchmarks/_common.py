@@ -49,10 +49,13 @@ def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 7)
 
 
 def machine() -> dict[str, str]:
+    from pimbrl.training.rundir import cpu_model, source_commit
+
     return {
         "python": platform.python_version(),
         "torch": torch.__version__,
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
+        "commit": source_commit() or "unknown",
         "threads": "1 (NUMBA/OMP/MKL/OPENBLAS_NUM_THREADS=1, torch.set_num_threads(1))",
     }
 

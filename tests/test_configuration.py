@@ -443,3 +443,48 @@ def test_compare_and_sweep_start_from_a_named_recipe(tmp_path) -> None:
     sweep.write_text(json.dumps({"envs": ["ks"], "methods": ["known-scheme"], "seeds": [0], "preset": "best"}))
     (trial,) = plan_trials(load_sweep(sweep), tmp_path / "out")
     assert trial.config == resolve_config(KS, {"method": "known-scheme", "seed": 0}, preset="best")
+
+
+# ---------------------------------------------------------------------------------- sweep trials (issue 30, in part)
+def test_a_sweep_plans_each_distinct_run_once_and_inside_its_root(tmp_path) -> None:
+    from pimbrl.experiments.sweep import load_sweep, plan_trials
+
+    def plan(**spec):
+        path = tmp_path / "sweep.json"
+        path.write_text(json.dumps({"envs": ["pendulum"], "methods": ["mfrl"], "seeds": [0], **spec}))
+        return plan_trials(load_sweep(path), tmp_path / "root")
+
+    for duplicate in ({"seeds": [0, 0]}, {"grid": {"utd": [1, 1.0]}}, {"envs": ["pendulum", "pimbrl/Pendulum-v0"]}):
+        with pytest.raises(ConfigError, match="is the same run as"):
+            plan(**duplicate)
+    trials = plan(grid={"env_kwargs": [{"l": 1.0}, {"l": 1.1}]}, methods=["mfrl"])  # "{'l': 1.0}": quotes, braces
+    root = (tmp_path / "root").resolve()
+    dirs = {Path(t.path).resolve() for t in trials}
+    assert len(dirs) == 2 and all(root in d.parents for d in dirs)
+    assert all("/" not in Path(t.path).parent.name and ".." not in Path(t.path).parent.name for t in trials)
+
+
+def test_a_huge_comparison_is_refused_at_once_and_planning_is_per_method(tmp_path, capsys) -> None:
+    from pimbrl.experiments.compare import MAX_SEEDS, plan_runs
+
+    assert main(["compare", "pendulum", "--seeds", "1000000", "--run-dir", str(tmp_path / "c"), "--no-run"]) == 2
+    assert "more than a comparison runs (10,000 seeds at most)" in capsys.readouterr().err
+    specs = plan_runs("pimbrl/Pendulum-v0", ["mfrl", "mbrl"], list(range(MAX_SEEDS)), tmp_path / "p")
+    assert len(specs) == 2 * MAX_SEEDS and specs[-1].config.seed == MAX_SEEDS - 1
+    assert specs[-1].config == resolve_config("pimbrl/Pendulum-v0", {"method": "mbrl", "seed": MAX_SEEDS - 1})
+    with pytest.raises(ValueError, match="seed 3 is given twice"):
+        plan_runs("pimbrl/Pendulum-v0", ["mfrl"], [3, 1, 3], tmp_path / "p")
+
+
+def test_a_coefficient_out_of_bounds_stops_planning_not_a_run(tmp_path) -> None:
+    from pimbrl.experiments.sweep import load_sweep, plan_trials
+
+    with pytest.raises(ConfigError, match=r"^env_kwargs: burgers: nu must be a finite number in \[0, 1\], got 1e\+300$"):
+        resolve_config("pimbrl/Burgers-v0", {"env_kwargs": {"nu": 1e300}})
+    path = tmp_path / "sweep.json"
+    path.write_text(
+        json.dumps({"envs": ["burgers"], "methods": ["mfrl"], "seeds": [0], "overrides": {"env_kwargs": {"nu": 1e300}}})
+    )
+    with pytest.raises(ConfigError, match="nu must be a finite number"):
+        plan_trials(load_sweep(path), tmp_path / "root")
+    assert not (tmp_path / "root").exists()

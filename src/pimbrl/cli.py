@@ -337,17 +337,27 @@ def _cmd_model_eval(args: argparse.Namespace) -> int:
 
 def _seed_list(text: str) -> list[int]:
     """``"3"`` means seeds 0, 1, 2; ``"0,4,7"`` those seeds; ``"5,"`` seed 5 alone."""
+    from .experiments.compare import MAX_SEEDS
+
     try:
-        seeds = [int(s) for s in text.split(",") if s.strip()] if "," in text else list(range(int(text)))
+        count = None if "," in text else int(text)
     except ValueError:
-        seeds = None
+        count = 0
+    if count is not None and count > MAX_SEEDS:
+        raise ValueError(f"--seeds {count:,} is more than a comparison runs ({MAX_SEEDS:,} seeds at most); give fewer")
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()] if count is None else list(range(count))
+    except ValueError:
+        seeds = []
     if not seeds:
         raise ValueError(
             f"--seeds must be a count >= 1 (e.g. 3 for seeds 0,1,2) or a list (e.g. 0,1,2, or 5, for seed 5 alone), got {text!r}"
         )
-    twice = [s for i, s in enumerate(seeds) if s in seeds[:i]]
-    if twice:  # one run directory per seed: a repeated seed would be one run counted twice
-        raise ValueError(f"seed {twice[0]} is given twice in --seeds {text}; give each seed once")
+    seen: set[int] = set()
+    for s in seeds:  # one run directory per seed: a repeated seed would be one run counted twice
+        if s in seen:
+            raise ValueError(f"seed {s} is given twice in --seeds {text}; give each seed once")
+        seen.add(s)
     return seeds
 
 

@@ -33,6 +33,7 @@ threshold, final and best mean test return, wall-clock, updates and the update-t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -46,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ConfigError
+from ..config import MAX_SEED, ConfigError
 from ..fileio import UnsafeFileError, atomic_write_bytes, check_below, open_below
 from ..training.cli_args import parse_train_args
 from ..training.config import (
@@ -65,6 +66,7 @@ from ..training.rundir import RunDirectory
 __all__ = [
     "CHILD_LOG",
     "COMPARE_METHODS",
+    "MAX_SEEDS",
     "REQUEST_FILE",
     "RunSpec",
     "check_reuse",
@@ -79,6 +81,8 @@ __all__ = [
 ]
 
 COMPARE_METHODS = (*METHODS, "mfrl-matched")
+#: the most seeds one comparison runs (planning more would take minutes before the first error)
+MAX_SEEDS = 10_000
 #: the file in a new run's directory that hands its configuration to the child process
 REQUEST_FILE = "config.request.json"
 #: the file in a run's directory that takes its child process's output
@@ -126,9 +130,13 @@ def plan_runs(
     for key in ("method", "seed"):
         if key in overrides:
             raise ConfigError(f"compare sets {key} itself (--methods, --seeds); it cannot be overridden")
-    twice = [s for i, s in enumerate(seeds) if s in list(seeds)[:i]]
-    if twice:  # each seed is one run directory: a repeated seed would be one run counted as two seeds
-        raise ValueError(f"seed {twice[0]} is given twice in the seeds {list(seeds)}; give each seed once")
+    if len(seeds) > MAX_SEEDS:
+        raise ValueError(f"{len(seeds):,} seeds are more than a comparison runs ({MAX_SEEDS:,} at most); give fewer")
+    seen: set[int] = set()
+    for s in seeds:  # each seed is one run directory: a repeated seed would be one run counted as two seeds
+        if s in seen:
+            raise ValueError(f"seed {s} is given twice in the seeds; give each seed once")
+        seen.add(s)
     root = Path(root)
     specs = []
     used: set[str] = set()
@@ -146,9 +154,11 @@ def plan_runs(
         applied = applicable_overrides(env_id, method, agent, overrides, reasons)
         fields.update(applied)
         used.update(applied)
+        first = resolve_config(env_id, {**fields, "seed": seeds[0]}, preset=preset)  # checked once per method
         for seed in seeds:
-            cfg = resolve_config(env_id, {**fields, "seed": seed}, preset=preset)
-            specs.append(RunSpec(label, seed, root / label / f"seed{seed}", cfg))
+            if not 0 <= seed <= MAX_SEED:
+                raise ConfigError(f"seed must be in [0, {MAX_SEED:,}], got {seed}")
+            specs.append(RunSpec(label, seed, root / label / f"seed{seed}", dataclasses.replace(first, seed=seed)))
     unused = [reasons[k] for k in overrides if k not in used]
     if unused:
         raise ConfigError(f"{'; '.join(unused)} (methods compared: {', '.join(methods)})")

@@ -222,6 +222,23 @@ def _check_envs(path: Path, envs: Sequence[str]) -> None:
             raise ConfigError(f"{path}: 'envs': {exc}") from None
 
 
+def _directory_name(setting: str) -> str:
+    """A setting's directory name: one path component, whatever its values hold (no ``/``, no ``..``).
+
+    Characters other than letters, digits and ``_ . , = + -`` become ``_``, a leading ``.`` is prefixed, and a
+    name so changed gets the first 8 hex digits of the setting's SHA-256 (two settings never share a
+    directory); the trial's ``params`` keep the values as written.
+    """
+    import hashlib
+
+    name = "".join(c if c.isalnum() or c in "_.,=+-" else "_" for c in setting)
+    if name.startswith("."):
+        name = f"_{name}"
+    if name != setting:
+        name += "-" + hashlib.sha256(setting.encode()).hexdigest()[:8]
+    return name
+
+
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
     """Every trial of ``spec`` with its resolved configuration.
 
@@ -237,6 +254,7 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
     used: set[str] = set()
     reasons: dict[str, str] = {}
     trials = []
+    seen: dict[tuple, str] = {}  # each distinct run once: by its environment id, method, typed setting and seed
     for env, method in itertools.product(spec.envs, spec.methods):
         env_id = resolve_env_id(env)
         for values in itertools.product(*(spec.grid[k] for k in keys)) if keys else [()]:
@@ -249,11 +267,19 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
             fields.update(applied)
             used.update(applied)
             for seed in spec.seeds:
+                label = f"{env} {method} {setting} seed {seed}"
+                key = (env_id, method, tuple((k, repr(v)) for k, v in swept.items()), seed)
+                if key in seen:
+                    raise ConfigError(
+                        f"sweep {spec.name}: {label} is the same run as {seen[key]} (a value, seed or environment given "
+                        "twice); give each once"
+                    )
+                seen[key] = label
                 try:
                     cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed}, preset=spec.preset)
                 except ConfigError as exc:
                     raise ConfigError(f"sweep {spec.name}, trial {env_id} {method} {setting} seed {seed}: {exc}") from None
-                path = root / env_id.split("/")[-1] / method / setting / f"seed{seed}"
+                path = root / env_id.split("/")[-1] / method / _directory_name(setting) / f"seed{seed}"
                 trials.append(Trial(env_id, method, seed, params, str(path), cfg))
     unused = [reasons[k] for k in fixed if k not in used]
     if unused:

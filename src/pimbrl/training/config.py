@@ -41,6 +41,7 @@ from ..config import (
 )
 from .envinfo import (
     changed_env_kwargs,
+    check_env_coefficients,
     check_env_kwargs,
     check_tensorboard,
     did_you_mean,
@@ -468,6 +469,7 @@ def _check_runnable(cfg: TrainConfig) -> None:
     network), TensorBoard, the device.
     """
     check_env_kwargs(cfg.env, cfg.env_kwargs)
+    check_env_coefficients(cfg.env, cfg.env_kwargs)
     check_lr_decay(cfg)
     check_device(cfg.device)
     if cfg.tensorboard:

@@ -161,6 +161,8 @@ class DynaModel:
         self.baseline_mse = float("inf")  # the no-change prediction's error on the same held-out transitions
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
+        #: real-simulator steps of the fine-tuning switch's validation episodes
+        self.validation_transitions = 0
         #: the validation episodes the fine-tuning switch reads (``finetune.at_return``), None when off: the
         #: switch never reads the test states, so a run trains the same whatever its test set
         self.validator = validator
@@ -183,7 +185,9 @@ class DynaModel:
         this changes no step of the run; the switch reads the result at the next model phase.
         """
         if self.validator is not None and not self.finetuning:
-            self.last_validation = self.validator.run(lambda o: agent.act(o, deterministic=True)).mean
+            result = self.validator.run(lambda o: agent.act(o, deterministic=True))
+            self.last_validation = result.mean
+            self.validation_transitions += int(result.lengths.sum())
 
     def phase(
         self,
@@ -365,6 +369,11 @@ class DynaModel:
             self.imagined.add_transitions(batch, holdout=0 * ones, valid=ones)
             self.imagined_total += len(batch)
 
+    @property
+    def scheme_transitions(self) -> int:
+        """Imagined transitions made by a scheme of the known equation (the model has it inside), else 0."""
+        return self.imagined_total if self.method.model_kind in ("physics", "hybrid") else 0
+
     def agent_batch(self, real: ReplayBuffer, size: int, rng: np.random.Generator) -> Batch:
         """The agent's batch: mixed with imagined transitions while the model is in use."""
         return agent_batch(real, self.imagined if self.in_use else None, self.method.imagine.real_ratio, size, rng)
@@ -436,6 +445,7 @@ class DynaModel:
             "baseline_mse": self.baseline_mse,
             "metrics": dict(self.metrics),
             "imagined_total": self.imagined_total,
+            "validation_transitions": self.validation_transitions,
             "coefficient_history": list(self.coefficient_history),
             "selection": None if self.selector is None else self.selector.state_dict(),
             "reward_model": None if self.reward_model is None else self.reward_model.state(),
@@ -453,6 +463,7 @@ class DynaModel:
         self.baseline_mse = float(state["baseline_mse"])
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
+        self.validation_transitions = int(state.get("validation_transitions", 0))  # absent from older checkpoints
         self.coefficient_history = list(state.get("coefficient_history", []))
         if self.reward_model is not None and state.get("reward_model") is not None:
             self.reward_model.load_state(state["reward_model"])

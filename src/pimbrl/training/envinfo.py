@@ -17,8 +17,10 @@ from ..config import ConfigError
 
 __all__ = [
     "changed_env_kwargs",
+    "check_env_coefficients",
     "check_env_kwargs",
     "check_tensorboard",
+    "default_physics",
     "did_you_mean",
     "entry_point",
     "is_pde_env",
@@ -56,20 +58,45 @@ def task_class(env: str) -> Any:
 
 
 @functools.cache
+def default_physics(env: str) -> Any:
+    """The physics of a pimbrl environment with its default coefficients (``None`` for any other Gymnasium id).
+
+    Built once per process and without simulating (a KS task reads its initial-state pools: about a second).
+    """
+    cls = task_class(env)
+    return None if cls is None else cls().physics
+
+
 def is_pde_env(env: str) -> bool:
     """Whether ``env`` is a pimbrl environment whose physics is a PDE.
 
     That is a system whose state is a field on a periodic grid (:attr:`pimbrl.physics.Physics.is_field`:
     Burgers, Kuramoto-Sivashinsky, a declared PDE); ``False`` for the ODE systems and any other Gymnasium id.
     """
-    cls = task_class(env)
-    return cls is not None and bool(cls().physics.is_field)  # built without simulating
+    physics = default_physics(env)
+    return physics is not None and bool(physics.is_field)
 
 
 def physics_coefficient_names(env: str) -> tuple[str, ...]:
     """The physical coefficients of a pimbrl environment's physics (``()`` for any other Gymnasium id)."""
-    cls = task_class(env)
-    return () if cls is None else tuple(cls().physics.coefficients)
+    physics = default_physics(env)
+    return () if physics is None else tuple(physics.coefficients)
+
+
+def check_env_coefficients(env: str, kwargs: Mapping[str, Any]) -> None:
+    """Raise :class:`ConfigError` for a physical coefficient in ``kwargs`` outside its bounds (``nu: 1e300``).
+
+    Checked when a configuration is resolved, so that a bad value stops a comparison or a sweep before any run
+    starts, not inside one.
+    """
+    names = physics_coefficient_names(env) if kwargs else ()
+    given = {k: v for k, v in kwargs.items() if k in names}
+    if not given:
+        return
+    try:
+        default_physics(env).with_coefficients(**given)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"env_kwargs: {exc}") from None
 
 
 def check_tensorboard() -> None:

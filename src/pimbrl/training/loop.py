@@ -44,7 +44,7 @@ from .config import TrainConfig, config_from_dict, config_to_dict
 from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator
 from .logger import RunLogger
-from .rundir import CheckpointError, RunDirectory, package_versions, steps_to_threshold
+from .rundir import CheckpointError, RunDirectory, package_versions, provenance, steps_to_threshold
 from .selection import PolicySelector
 from .streams import RandomStreams
 
@@ -75,9 +75,17 @@ class RunSummary:
     best_return_mean: float | None
     steps_to_threshold: int | None
     wall_s: float
-    #: model-based policy selection (``dyna.select_episodes``): the step of the policy kept, and its test return
+    #: model-based policy selection (``imagine.select_episodes``): the step of the policy kept, and its test return
     selected_step: int | None = None
     selected_return_mean: float | None = None
+    #: what the method used to get there: real transitions (the environment's steps), imagined transitions
+    #: (made by the model), the imagined ones a scheme of the known equation made (known-scheme,
+    #: identified-scheme and the hybrids: simulator transitions a model-free method does not have) and the real
+    #: simulator's steps of the fine-tuning switch's validation episodes
+    real_transitions: int | None = None
+    imagined_transitions: int | None = None
+    scheme_transitions: int | None = None
+    validation_transitions: int | None = None
 
 
 class UpdateSchedule:
@@ -234,6 +242,10 @@ class Run:
             wall_s=self.logger.wall_s,
             selected_step=None if selector is None else selector.best_step,
             selected_return_mean=None if selector is None else selector.best_test_return,
+            real_transitions=self.t,
+            imagined_transitions=0 if self.model is None else self.model.imagined_total,
+            scheme_transitions=0 if self.model is None else self.model.scheme_transitions,
+            validation_transitions=0 if self.model is None else self.model.validation_transitions,
         )
 
     def lr_scale(self) -> float | None:
@@ -441,7 +453,13 @@ def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, comman
             raise FileExistsError(_exists_message(path))
         run_dir.check_entries(writing=True)  # a folder holding planted links or FIFOs is refused
         run_dir.remove_stale_temporaries()
-        payload = {"status": "running", "config": config_to_dict(cfg), "versions": package_versions(), "command": command}
+        payload = {
+            "status": "running",
+            "config": config_to_dict(cfg),
+            "versions": package_versions(),
+            "provenance": provenance(),
+            "command": command,
+        }
         run_dir.write_config({**payload, "system": {"id": cfg.env, "origin": system_origin(cfg.env)}})
     except BaseException:
         run_dir.close()

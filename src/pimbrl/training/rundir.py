@@ -191,6 +191,56 @@ def wall_s_to_threshold(evaluations: list[dict[str, Any]], threshold: float | No
     return next((float(r["wall_s"]) for r in evaluations if float(r["return_mean"]) >= threshold), None)
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``'s ``model name``; else the platform's processor or machine).
+
+    Results are bit for bit on one CPU model only, so a record names the model, not just ``x86_64``.
+    """
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def source_commit() -> str | None:
+    """The git commit the running pimbrl was loaded from (``None`` outside a git checkout, e.g. an installed wheel).
+
+    Read from the repository's files (``.git/HEAD`` and the ref it names), without running git.
+    """
+    here = Path(__file__).resolve()
+    for root in here.parents:
+        git = root / ".git"
+        if git.is_dir():
+            try:
+                head = (git / "HEAD").read_text().strip()
+                if head.startswith("ref: "):
+                    ref = head[5:]
+                    path = git / ref
+                    if path.is_file():
+                        return path.read_text().strip()
+                    packed = git / "packed-refs"
+                    if packed.is_file():
+                        for line in packed.read_text().splitlines():
+                            if line.endswith(" " + ref):
+                                return line.split()[0]
+                    return None
+                return head
+            except OSError:
+                return None
+    return None
+
+
+def provenance() -> dict[str, Any]:
+    """Where a run ran: the CPU model, its cores, and the commit of the code (recorded in ``config.json``)."""
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "commit": source_commit()}
+
+
 def package_versions() -> dict[str, str]:
     """Versions of Python, pimbrl and its main dependencies, recorded in a run's configuration file."""
     import gymnasium
