@@ -488,3 +488,23 @@ def test_a_coefficient_out_of_bounds_stops_planning_not_a_run(tmp_path) -> None:
     with pytest.raises(ConfigError, match="nu must be a finite number"):
         plan_trials(load_sweep(path), tmp_path / "root")
     assert not (tmp_path / "root").exists()
+
+
+def test_two_comparisons_in_one_directory_do_not_run_at_once(tmp_path) -> None:
+    import fcntl
+    import os
+
+    from pimbrl.experiments.compare import COMPARE_LOCK, compare
+
+    root = tmp_path / "cmp"
+    root.mkdir()
+    held = os.open(root / COMPARE_LOCK, os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running comparison holds it
+        with pytest.raises(ConfigError, match="is in use by another pimbrl compare"):
+            compare("pimbrl/Pendulum-v0", ["mfrl"], [0], root, {"total_steps": 200}, log=lambda m: None, status=False)
+        assert not (root / "mfrl").exists()  # nothing was started
+        summary = compare("pimbrl/Pendulum-v0", ["mfrl"], [0], root, {"total_steps": 200}, run=False, log=lambda m: None)
+        assert summary["runs"] == []  # a --no-run summary takes no lock
+    finally:
+        os.close(held)

@@ -65,6 +65,7 @@ from ..training.rundir import RunDirectory
 
 __all__ = [
     "CHILD_LOG",
+    "COMPARE_LOCK",
     "COMPARE_METHODS",
     "MAX_SEEDS",
     "REQUEST_FILE",
@@ -73,6 +74,7 @@ __all__ = [
     "child_status",
     "compare",
     "config_differences",
+    "lock_comparison",
     "plan_runs",
     "run_all",
     "step_ratio",
@@ -87,6 +89,8 @@ MAX_SEEDS = 10_000
 REQUEST_FILE = "config.request.json"
 #: the file in a run's directory that takes its child process's output
 CHILD_LOG = "compare.log"
+#: the lock file of a comparison's directory (one comparison runs there at a time)
+COMPARE_LOCK = "compare.lock"
 #: seconds between status refreshes: on a terminal, and as plain lines otherwise
 STATUS_EVERY_TTY = 2.0
 STATUS_EVERY_PLAIN = 30.0
@@ -188,6 +192,32 @@ def config_differences(recorded: Any, requested: TrainConfig) -> list[str]:
         return ["the recorded configuration (unreadable)"]
     wanted = _flat(json.loads(json.dumps(config_to_dict(requested))))
     return [f"{k} ({there.get(k)!r} there, {wanted.get(k)!r} requested)" for k in wanted if there.get(k) != wanted.get(k)]
+
+
+def lock_comparison(root: Path) -> int:
+    """Take the exclusive lock of a comparison's directory (``compare.lock``); returns its descriptor.
+
+    Two comparisons running in one directory would each train, or wait on, and summarise the other's unfinished
+    runs: the second is a :class:`ConfigError` naming the first. The lock is the OS's (released when the
+    descriptor is closed or the process ends, also a killed one). ``--no-run`` summaries take no lock.
+    """
+    import fcntl
+
+    fd = open_below(root, COMPARE_LOCK, os.O_RDWR | os.O_CREAT, single_link=True)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        try:
+            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+        finally:
+            os.close(fd)
+        raise ConfigError(
+            f"{root} is in use by another pimbrl compare ({holder}); wait for it to end, or give another --run-dir "
+            "(two comparisons in one directory would each summarise the other's unfinished runs)"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)}\n".encode(), 0)
+    return fd
 
 
 def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[str], None] = print) -> None:
@@ -621,10 +651,16 @@ def compare(
     specs = plan_runs(env_id, methods, seeds, root, overrides, preset)  # every configuration checked before anything runs
     for spec in specs:  # DIR/<method>/seed<k>: no link on the way below DIR (it would lead the runs elsewhere)
         check_below(root, spec.path.relative_to(root), "directory")
-    if run:
-        check_reuse(specs, rerun=rerun, log=log)
-        root.mkdir(parents=True, exist_ok=True)
-    failed = run_all(specs, jobs=jobs, log=log, status=status, imports=imports) if run else []
+    lock = None
+    try:
+        if run:
+            root.mkdir(parents=True, exist_ok=True)
+            lock = lock_comparison(root)  # before any run is looked at: one comparison runs in a directory at a time
+            check_reuse(specs, rerun=rerun, log=log)
+        failed = run_all(specs, jobs=jobs, log=log, status=status, imports=imports) if run else []
+    finally:
+        if lock is not None:
+            os.close(lock)  # releases the lock
     if threshold is None:
         threshold = resolve_config(env_id, {"method": "mfrl"}, preset=preset).threshold
     result = summarize_runs(specs, threshold)
