@@ -454,9 +454,17 @@ def test_a_sweep_plans_each_distinct_run_once_and_inside_its_root(tmp_path) -> N
         path.write_text(json.dumps({"envs": ["pendulum"], "methods": ["mfrl"], "seeds": [0], **spec}))
         return plan_trials(load_sweep(path), tmp_path / "root")
 
-    for duplicate in ({"seeds": [0, 0]}, {"grid": {"utd": [1, 1.0]}}, {"envs": ["pendulum", "pimbrl/Pendulum-v0"]}):
+    duplicates = (
+        {"seeds": [0, 0]},
+        {"grid": {"utd": [1, 1.0]}},
+        {"envs": ["pendulum", "pimbrl/Pendulum-v0"]},
+        {"grid": {"env_kwargs": [{"g": 9.0, "m": 1.0}, {"m": 1, "g": 9}]}},  # the same mapping, written twice
+    )
+    for duplicate in duplicates:
         with pytest.raises(ConfigError, match="is the same run as"):
             plan(**duplicate)
+    (escape,) = plan(grid={"env_kwargs": [{"observation": "x/../../../y"}]})  # a value that reads as a path
+    assert (tmp_path / "root").resolve() in Path(escape.path).resolve().parents and ".." not in Path(escape.path).parts
     trials = plan(grid={"env_kwargs": [{"l": 1.0}, {"l": 1.1}]}, methods=["mfrl"])  # "{'l': 1.0}": quotes, braces
     root = (tmp_path / "root").resolve()
     dirs = {Path(t.path).resolve() for t in trials}
@@ -481,6 +489,8 @@ def test_a_coefficient_out_of_bounds_stops_planning_not_a_run(tmp_path) -> None:
 
     with pytest.raises(ConfigError, match=r"^env_kwargs: burgers: nu must be a finite number in \[0, 1\], got 1e\+300$"):
         resolve_config("pimbrl/Burgers-v0", {"env_kwargs": {"nu": 1e300}})
+    with pytest.raises(ConfigError, match="unstable"):  # in bounds, but the explicit solver step amplifies a mode
+        resolve_config(KS, {"env_kwargs": {"hyper_diffusion": 100.0}})
     path = tmp_path / "sweep.json"
     path.write_text(
         json.dumps({"envs": ["burgers"], "methods": ["mfrl"], "seeds": [0], "overrides": {"env_kwargs": {"nu": 1e300}}})

@@ -6,6 +6,9 @@ import json
 import subprocess
 from pathlib import Path
 
+import pytest
+
+from pimbrl.config import ConfigError
 from pimbrl.training import create_run, resolve_config, train
 from pimbrl.training.rundir import cpu_model, source_commit
 
@@ -45,7 +48,64 @@ def test_a_run_records_where_it_ran_and_what_its_method_used(tmp_path) -> None:
     _, mb = _run(tmp_path, "mb", "mbrl")
     assert mb["imagined_transitions"] > 0 and mb["scheme_transitions"] == 0  # a network's imagination
     _, known = _run(tmp_path, "known", "known-scheme", **{"finetune.at_return": 1e9, "finetune.episodes": 2})
-    assert known["scheme_transitions"] == known["imagined_transitions"] > 0  # the known equation's transitions
+    assert known["scheme_transitions"] >= known["imagined_transitions"] > 0  # the known equation's transitions
     assert known["validation_transitions"] == 2 * 200  # the switch's two validation episodes at the one evaluation
     recorded = json.loads((tmp_path / "known" / "config.json").read_text())["summary"]
     assert recorded["scheme_transitions"] == known["scheme_transitions"]
+
+
+def test_policy_selection_s_steps_in_the_scheme_are_counted_and_old_checkpoints_say_unknown(tmp_path) -> None:
+    _, plain = _run(tmp_path, "plain", "known-scheme")
+    _, selecting = _run(tmp_path, "select", "known-scheme", **{"imagine.select_episodes": 2})
+    assert plain["scheme_transitions"] == plain["imagined_transitions"]  # imagination only (no step blew up)
+    assert selecting["scheme_transitions"] >= selecting["imagined_transitions"] + 2 * 200  # two whole episodes
+    from pimbrl.training import load_run
+
+    run = load_run(tmp_path / "select")
+    state = run.model.state_dict()
+    for key in ("validation_transitions", "model_transitions"):
+        state.pop(key)  # as a checkpoint written before they were counted
+    run.model.load_state_dict(state)
+    summary = run.summary()
+    assert summary.scheme_transitions is None and summary.validation_transitions is None
+    run.run_dir.close()
+
+
+def test_the_commit_is_read_from_a_worktree_and_not_from_a_project_around_an_install(tmp_path, monkeypatch) -> None:
+    import pimbrl.training.rundir as rundir
+
+    repo = tmp_path / "repo"
+    (repo / "src" / "pimbrl" / "training").mkdir(parents=True)
+    (repo / "pyproject.toml").write_text("")
+    gitdir = tmp_path / "main.git" / "worktrees" / "repo"
+    (gitdir).mkdir(parents=True)
+    (repo / ".git").write_text(f"gitdir: {gitdir}\n")
+    (gitdir / "HEAD").write_text("ref: refs/heads/topic\n")
+    (gitdir / "commondir").write_text("../..\n")
+    (tmp_path / "main.git" / "refs" / "heads").mkdir(parents=True)
+    (tmp_path / "main.git" / "refs" / "heads" / "topic").write_text("abc123\n")
+    monkeypatch.setattr(rundir, "__file__", str(repo / "src" / "pimbrl" / "training" / "rundir.py"))
+    assert rundir.source_commit() == "abc123"
+    site = tmp_path / "project" / ".venv" / "lib" / "site-packages" / "pimbrl" / "training"
+    site.mkdir(parents=True)
+    (tmp_path / "project" / ".git").mkdir()
+    monkeypatch.setattr(rundir, "__file__", str(site / "rundir.py"))
+    assert rundir.source_commit() is None  # an installed pimbrl is not the surrounding project's commit
+
+
+def test_a_system_declared_again_is_checked_with_its_new_coefficients() -> None:
+    from pimbrl.systems import Coefficient, declare
+
+    from .test_systems import VanDerPol
+
+    class Narrow(VanDerPol):
+        coefficients = {"mu": Coefficient(1.0, low=0.0, high=2.0)}  # noqa: RUF012 - the API's form
+
+    class Wide(VanDerPol):
+        coefficients = {"mu": Coefficient(1.0, low=0.0, high=8.0)}  # noqa: RUF012 - the API's form
+
+    declare(Narrow, "test/ReDeclared-v0")
+    with pytest.raises(ConfigError, match="mu"):
+        resolve_config("test/ReDeclared-v0", {"env_kwargs": {"mu": 6.0}})
+    declare(Wide, "test/ReDeclared-v0")  # the same id, declared again: its new bounds apply
+    assert resolve_config("test/ReDeclared-v0", {"env_kwargs": {"mu": 6.0}}).env_kwargs == {"mu": 6.0}

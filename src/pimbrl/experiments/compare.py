@@ -134,6 +134,11 @@ def plan_runs(
     for key in ("method", "seed"):
         if key in overrides:
             raise ConfigError(f"compare sets {key} itself (--methods, --seeds); it cannot be overridden")
+    if not seeds:
+        raise ValueError("a comparison needs at least one seed")
+    bad = [s for s in seeds if isinstance(s, bool) or not isinstance(s, int)]
+    if bad:
+        raise ConfigError(f"seed must be an integer, got {bad[0]!r}")
     if len(seeds) > MAX_SEEDS:
         raise ValueError(f"{len(seeds):,} seeds are more than a comparison runs ({MAX_SEEDS:,} at most); give fewer")
     seen: set[int] = set()
@@ -206,7 +211,10 @@ def lock_comparison(root: Path) -> int:
     fd = open_below(root, COMPARE_LOCK, os.O_RDWR | os.O_CREAT, single_link=True)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+    except OSError as exc:
+        if not isinstance(exc, BlockingIOError):
+            os.close(fd)
+            raise
         try:
             holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
         finally:
@@ -215,8 +223,11 @@ def lock_comparison(root: Path) -> int:
             f"{root} is in use by another pimbrl compare ({holder}); wait for it to end, or give another --run-dir "
             "(two comparisons in one directory would each summarise the other's unfinished runs)"
         ) from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)}\n".encode(), 0)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)}\n".encode(), 0)
+    except OSError:
+        pass  # the lock holds without the description
     return fd
 
 

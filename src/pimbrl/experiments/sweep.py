@@ -54,7 +54,7 @@ from ..config import ConfigError, typed_value
 from ..fileio import atomic_write_bytes, check_below
 from ..training import METHODS, RunDirectory, TrainConfig
 from ..training.cli_args import parse_train_args
-from ..training.config import applicable_overrides, did_you_mean, resolve_config, run_names, typed_overrides
+from ..training.config import applicable_overrides, config_to_dict, did_you_mean, resolve_config, run_names, typed_overrides
 
 __all__ = ["SweepSpec", "Trial", "execute_trial", "load_sweep", "plan_trials", "ray_available", "run_sweep"]
 
@@ -222,21 +222,41 @@ def _check_envs(path: Path, envs: Sequence[str]) -> None:
             raise ConfigError(f"{path}: 'envs': {exc}") from None
 
 
-def _directory_name(setting: str) -> str:
-    """A setting's directory name: one path component, whatever its values hold (no ``/``, no ``..``).
+#: the longest setting directory name kept as written (file systems allow 255 bytes)
+_MAX_NAME = 100
 
-    Characters other than letters, digits and ``_ . , = + -`` become ``_``, a leading ``.`` is prefixed, and a
-    name so changed gets the first 8 hex digits of the setting's SHA-256 (two settings never share a
-    directory); the trial's ``params`` keep the values as written.
+
+def _directory_name(setting: str) -> str:
+    """A setting's directory name: one path component inside the run root, whatever its values hold.
+
+    The setting as written where that is a safe component (no ``/``, no leading ``.``, printable, at most
+    100 characters: the names of earlier sweeps); otherwise characters other than letters, digits and
+    ``_ . , = + -`` become ``_``, the name is cut to 80 characters, and the first 8 hex digits of the
+    setting's SHA-256 are appended (two settings never share a directory). The trial's ``params`` keep the
+    values as written.
     """
     import hashlib
 
-    name = "".join(c if c.isalnum() or c in "_.,=+-" else "_" for c in setting)
-    if name.startswith("."):
-        name = f"_{name}"
-    if name != setting:
-        name += "-" + hashlib.sha256(setting.encode()).hexdigest()[:8]
-    return name
+    safe = "/" not in setting and "\\" not in setting and not setting.startswith(".") and setting.isprintable()
+    if safe and 0 < len(setting.encode()) <= _MAX_NAME:
+        return setting
+    name = "".join(c if c.isalnum() or c in "_.,=+-" else "_" for c in setting)[:80].lstrip(".")
+    return f"{name or 'setting'}-{hashlib.sha256(setting.encode()).hexdigest()[:8]}"
+
+
+def _env_directory(env_id: str) -> str:
+    """An environment's directory name: the id's name for pimbrl's systems, ``namespace__Name-vN`` for others."""
+    namespace, _, name = env_id.rpartition("/")
+    return name if namespace in ("", "pimbrl") else f"{namespace}__{name}"
+
+
+def _same_run_key(env_id: str, method: str, cfg: TrainConfig) -> str:
+    """What makes two trials the same run: the environment, the method and the whole resolved configuration.
+
+    Numbers are compared as numbers (``9`` and ``9.0``), mappings whatever their order.
+    """
+    data = json.loads(json.dumps(config_to_dict(cfg), default=str), parse_int=float)
+    return json.dumps([env_id, method, data], sort_keys=True)
 
 
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
@@ -254,7 +274,7 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
     used: set[str] = set()
     reasons: dict[str, str] = {}
     trials = []
-    seen: dict[tuple, str] = {}  # each distinct run once: by its environment id, method, typed setting and seed
+    seen: dict[str, str] = {}  # each distinct run once: by its environment, method and resolved configuration
     for env, method in itertools.product(spec.envs, spec.methods):
         env_id = resolve_env_id(env)
         for values in itertools.product(*(spec.grid[k] for k in keys)) if keys else [()]:
@@ -268,18 +288,18 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
             used.update(applied)
             for seed in spec.seeds:
                 label = f"{env} {method} {setting} seed {seed}"
-                key = (env_id, method, tuple((k, repr(v)) for k, v in swept.items()), seed)
+                try:
+                    cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed}, preset=spec.preset)
+                except ConfigError as exc:
+                    raise ConfigError(f"sweep {spec.name}, trial {env_id} {method} {setting} seed {seed}: {exc}") from None
+                key = _same_run_key(env_id, method, cfg)
                 if key in seen:
                     raise ConfigError(
                         f"sweep {spec.name}: {label} is the same run as {seen[key]} (a value, seed or environment given "
                         "twice); give each once"
                     )
                 seen[key] = label
-                try:
-                    cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed}, preset=spec.preset)
-                except ConfigError as exc:
-                    raise ConfigError(f"sweep {spec.name}, trial {env_id} {method} {setting} seed {seed}: {exc}") from None
-                path = root / env_id.split("/")[-1] / method / _directory_name(setting) / f"seed{seed}"
+                path = root / _env_directory(env_id) / method / _directory_name(setting) / f"seed{seed}"
                 trials.append(Trial(env_id, method, seed, params, str(path), cfg))
     unused = [reasons[k] for k in fixed if k not in used]
     if unused:

@@ -62,6 +62,8 @@ class ModelEnv:
         self.rng = rng  # samples stochastic action mappings (Discrete(2)), as in the real environment
         self.use_path = use_path
         self.model_calls = 0
+        #: transitions the model has stepped (every row of every call: rollouts, whole-episode selection)
+        self.transitions = 0
 
     @torch.no_grad()
     def step(
@@ -75,6 +77,7 @@ class ModelEnv:
         phys_a = self.task.physical_action(self.adapter.to_env(action, None if deterministic else self.rng), len(state))
         path = self.model(torch.as_tensor(state, dtype=torch.float32), torch.as_tensor(phys_a, dtype=torch.float32))
         self.model_calls += 1
+        self.transitions += len(state)
         path_np = path.double().numpy()
         nxt = path_np[:, -1]
         valid = ~self.physics.diverged(nxt)

@@ -155,14 +155,16 @@ class DynaModel:
             use_path=m.imagine.reward_quadrature == "path",
             physics=self.physics,
         )
+        self._model_steps_unknown = False
         self.in_use = False
         self.finetuning = False
         self.val_mse = float("inf")
         self.baseline_mse = float("inf")  # the no-change prediction's error on the same held-out transitions
         self.metrics: dict[str, float] = {}
         self.imagined_total = 0
-        #: real-simulator steps of the fine-tuning switch's validation episodes
-        self.validation_transitions = 0
+        #: real-simulator steps of the fine-tuning switch's validation episodes (``None``: unknown, a run resumed
+        #: from a checkpoint written before they were counted)
+        self.validation_transitions: int | None = 0
         #: the validation episodes the fine-tuning switch reads (``finetune.at_return``), None when off: the
         #: switch never reads the test states, so a run trains the same whatever its test set
         self.validator = validator
@@ -187,7 +189,8 @@ class DynaModel:
         if self.validator is not None and not self.finetuning:
             result = self.validator.run(lambda o: agent.act(o, deterministic=True))
             self.last_validation = result.mean
-            self.validation_transitions += int(result.lengths.sum())
+            if self.validation_transitions is not None:
+                self.validation_transitions += int(result.lengths.sum())
 
     def phase(
         self,
@@ -370,9 +373,14 @@ class DynaModel:
             self.imagined_total += len(batch)
 
     @property
-    def scheme_transitions(self) -> int:
-        """Imagined transitions made by a scheme of the known equation (the model has it inside), else 0."""
-        return self.imagined_total if self.method.model_kind in ("physics", "hybrid") else 0
+    def scheme_transitions(self) -> int | None:
+        """Transitions a scheme of the known equation stepped (imagination and policy selection), else 0.
+
+        ``None`` where unknown: a run resumed from a checkpoint written before they were counted.
+        """
+        if self.method.model_kind not in ("physics", "hybrid"):
+            return 0
+        return None if self._model_steps_unknown else self.model_env.transitions
 
     def agent_batch(self, real: ReplayBuffer, size: int, rng: np.random.Generator) -> Batch:
         """The agent's batch: mixed with imagined transitions while the model is in use."""
@@ -446,6 +454,7 @@ class DynaModel:
             "metrics": dict(self.metrics),
             "imagined_total": self.imagined_total,
             "validation_transitions": self.validation_transitions,
+            "model_transitions": None if self._model_steps_unknown else self.model_env.transitions,
             "coefficient_history": list(self.coefficient_history),
             "selection": None if self.selector is None else self.selector.state_dict(),
             "reward_model": None if self.reward_model is None else self.reward_model.state(),
@@ -463,7 +472,12 @@ class DynaModel:
         self.baseline_mse = float(state["baseline_mse"])
         self.metrics = dict(state["metrics"])
         self.imagined_total = int(state["imagined_total"])
-        self.validation_transitions = int(state.get("validation_transitions", 0))  # absent from older checkpoints
+        # absent from checkpoints written before they were counted: unknown from then on
+        counted = state.get("validation_transitions")
+        self.validation_transitions = None if counted is None else int(counted)
+        stepped = state.get("model_transitions")
+        self._model_steps_unknown = stepped is None
+        self.model_env.transitions = 0 if stepped is None else int(stepped)
         self.coefficient_history = list(state.get("coefficient_history", []))
         if self.reward_model is not None and state.get("reward_model") is not None:
             self.reward_model.load_state(state["reward_model"])

@@ -57,14 +57,19 @@ def task_class(env: str) -> Any:
     return getattr(entry_point(env), "task_class", None)
 
 
-@functools.cache
 def default_physics(env: str) -> Any:
     """The physics of a pimbrl environment with its default coefficients (``None`` for any other Gymnasium id).
 
-    Built once per process and without simulating (a KS task reads its initial-state pools: about a second).
+    Built once per task class and process, without simulating (a KS task reads its initial-state pools: about
+    a second); a system declared again under the same id has a new task class, so its new physics.
     """
     cls = task_class(env)
-    return None if cls is None else cls().physics
+    return None if cls is None else _physics_of(cls)
+
+
+@functools.cache
+def _physics_of(cls: type) -> Any:
+    return cls().physics
 
 
 def is_pde_env(env: str) -> bool:
@@ -94,7 +99,10 @@ def check_env_coefficients(env: str, kwargs: Mapping[str, Any]) -> None:
     if not given:
         return
     try:
-        default_physics(env).with_coefficients(**given)
+        physics = default_physics(env).with_coefficients(**given)
+        check = getattr(physics, "check_stability", None)
+        if check is not None:  # an explicit solver step the coefficients make unstable (a PDE's)
+            check()
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"env_kwargs: {exc}") from None
 

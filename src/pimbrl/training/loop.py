@@ -79,9 +79,10 @@ class RunSummary:
     selected_step: int | None = None
     selected_return_mean: float | None = None
     #: what the method used to get there: real transitions (the environment's steps), imagined transitions
-    #: (made by the model), the imagined ones a scheme of the known equation made (known-scheme,
-    #: identified-scheme and the hybrids: simulator transitions a model-free method does not have) and the real
-    #: simulator's steps of the fine-tuning switch's validation episodes
+    #: (made by the model, in the imagined buffer), the transitions a scheme of the known equation stepped
+    #: (known-scheme, identified-scheme and the hybrids: imagination and policy selection; simulator
+    #: transitions a model-free method does not have) and the real simulator's steps of the fine-tuning
+    #: switch's validation episodes; ``None``: unknown (resumed from a checkpoint that did not count them)
     real_transitions: int | None = None
     imagined_transitions: int | None = None
     scheme_transitions: int | None = None

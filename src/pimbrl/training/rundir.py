@@ -209,36 +209,50 @@ def cpu_model() -> str:
 
 
 def source_commit() -> str | None:
-    """The git commit the running pimbrl was loaded from (``None`` outside a git checkout, e.g. an installed wheel).
+    """The git commit of the source tree this pimbrl was loaded from (``None`` for an installed package).
 
-    Read from the repository's files (``.git/HEAD`` and the ref it names), without running git.
+    Only the checkout whose ``src/pimbrl`` this module is in counts (an install inside another project's
+    virtual environment records nothing). Read from its ``.git`` without running git: a directory, or the
+    file a worktree has (``gitdir: ...``, with ``commondir`` for shared refs); a branch ref, packed refs or a
+    detached head.
     """
-    here = Path(__file__).resolve()
-    for root in here.parents:
-        git = root / ".git"
-        if git.is_dir():
-            try:
-                head = (git / "HEAD").read_text().strip()
-                if head.startswith("ref: "):
-                    ref = head[5:]
-                    path = git / ref
-                    if path.is_file():
-                        return path.read_text().strip()
-                    packed = git / "packed-refs"
-                    if packed.is_file():
-                        for line in packed.read_text().splitlines():
-                            if line.endswith(" " + ref):
-                                return line.split()[0]
-                    return None
-                return head
-            except OSError:
+    package = Path(__file__).resolve().parent.parent
+    repo = package.parent.parent
+    if package.parent.name != "src" or not (repo / "pyproject.toml").is_file():
+        return None
+    try:
+        git = repo / ".git"
+        if git.is_file():  # a worktree: "gitdir: <path>"
+            text = git.read_text().strip()
+            if not text.startswith("gitdir:"):
                 return None
+            git = (repo / text.split(":", 1)[1].strip()).resolve()
+        if not git.is_dir():
+            return None
+        common = git
+        if (git / "commondir").is_file():
+            common = (git / (git / "commondir").read_text().strip()).resolve()
+        head = (git / "HEAD").read_text().strip()
+        if not head.startswith("ref: "):
+            return head or None
+        ref = head[5:]
+        for base in (git, common):
+            if (base / ref).is_file():
+                return (base / ref).read_text().strip()
+        packed = common / "packed-refs"
+        if packed.is_file():
+            for line in packed.read_text().splitlines():
+                if line.endswith(" " + ref):
+                    return line.split()[0]
+    except OSError:
+        return None
     return None
 
 
 def provenance() -> dict[str, Any]:
-    """Where a run ran: the CPU model, its cores, and the commit of the code (recorded in ``config.json``)."""
-    return {"cpu": cpu_model(), "cores": os.cpu_count(), "commit": source_commit()}
+    """Where a run ran: the CPU model, the cores this process may use, the commit of the code (in ``config.json``)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu": cpu_model(), "cores": cores, "commit": source_commit()}
 
 
 def package_versions() -> dict[str, str]:
