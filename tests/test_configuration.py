@@ -37,6 +37,7 @@ from pimbrl.training.config import (
     recipe_of,
 )
 from pimbrl.training.methods import METHOD_TYPES, SECTIONS, methods_with
+from pimbrl.training.rundir import cpu_model
 
 ROOT = Path(__file__).resolve().parent.parent
 LEGACY = Path(__file__).resolve().parent / "data" / "legacy"
@@ -302,13 +303,6 @@ def test_the_histogram_figure_has_its_own_file_beside_model_eval_s() -> None:
 
 
 # ---------------------------------------------------------------------------------- recorded runs re-created
-def _cpu() -> str:
-    try:
-        return next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return "unknown"
-
-
 def test_old_configurations_map_to_the_commands_that_make_them_now() -> None:
     old = {
         name: json.loads((LEGACY / f"{name}.json").read_text())["config"]
@@ -327,8 +321,8 @@ def test_old_configurations_map_to_the_commands_that_make_them_now() -> None:
 @pytest.mark.parametrize("name", ["burgers_pimbrl", "burgers_mfrl", "ks_known_scheme"])
 def test_recorded_runs_reproduce_their_first_evaluations_bit_for_bit(name: str, tmp_path) -> None:
     record = json.loads((LEGACY / f"{name}.json").read_text())
-    if _cpu() != record["cpu"]:
-        pytest.skip(f"recorded on {record['cpu']!r}; runs are bit for bit on one CPU model only (this is {_cpu()!r})")
+    if cpu_model() != record["cpu"]:
+        pytest.skip(f"recorded on {record['cpu']!r}; runs are bit for bit on one CPU model only (this is {cpu_model()!r})")
     expected = record["evaluations"]
 
     class StopAtFirstEvaluationsError(Exception):

@@ -21,6 +21,8 @@ from collections.abc import Callable
 from typing import Any
 
 __all__ = [
+    "BROAD_SOURCES",
+    "LOOP_SOURCES",
     "MAX_BATCH",
     "MAX_LR",
     "MAX_SEED",
@@ -28,10 +30,12 @@ __all__ = [
     "MAX_TRANSITIONS",
     "MODEL_KINDS",
     "PHYSICS_MODEL_KINDS",
+    "PHYSICS_SOURCES",
     "ConfigError",
     "add_arguments",
     "at_most",
     "check_env_id",
+    "flag_of",
     "load_yaml",
     "overrides_from_args",
     "param",
@@ -46,6 +50,11 @@ __all__ = [
 PHYSICS_MODEL_KINDS = ("physics", "hybrid")
 #: every kind of transition model (pimbrl.models.make_model): the networks, then the physics-based ones
 MODEL_KINDS = ("convlstm", "equivariant", "mlp", *PHYSICS_MODEL_KINDS)
+#: the physics loss's sources (pimbrl.models.state_sources): those the training loop holds (real buffer,
+#: imagined buffer), then those made from seed states and the physics; which a system offers depends on its kind
+LOOP_SOURCES = ("policy", "imagined")
+BROAD_SOURCES = ("symmetry", "scaled", "noise", "box")
+PHYSICS_SOURCES = LOOP_SOURCES + BROAD_SOURCES
 
 #: Upper bounds of the sizes and counts of the configurations (docs/training.md, section 'Bounds'): far
 #: beyond any run this CPU library can make, low enough that a typo gives a message instead of an
@@ -247,6 +256,11 @@ def _strip_optional(tp: Any) -> Any:
     return args[0] if typing.get_origin(tp) in (typing.Union, types.UnionType) and len(args) == 1 else tp
 
 
+def flag_of(path: str) -> str:
+    """The command-line flag of a setting's path: ``imagine.rollout_length`` -> ``--imagine.rollout-length``."""
+    return "--" + path.replace("_", "-")
+
+
 def add_arguments(
     parser: argparse.ArgumentParser,
     cls: type,
@@ -265,7 +279,7 @@ def add_arguments(
         tp = hints[f.name]
         if f.name in skip or dataclasses.is_dataclass(tp) or _base_type(tp) is dict:
             continue
-        flag = f"--{prefix}{f.name.replace('_', '-')}"
+        flag = flag_of(f"{prefix}{f.name}")
         if f.default is not dataclasses.MISSING:
             default = f.default
         elif f.default_factory is not dataclasses.MISSING:

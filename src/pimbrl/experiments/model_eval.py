@@ -29,7 +29,7 @@ from ..config import validate
 from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
-from ..models.residual import Scheme
+from ..models.residual import as_scheme
 from ..models.state_sources import PhysicsPairs, choose_sources
 from ..physics import Physics
 from ..spaces import ActionAdapter
@@ -197,7 +197,7 @@ def run_model_eval(
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
         model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=network_of(cfg, physics))
-        scheme = _scheme(cfg.scheme)
+        scheme = as_scheme(cfg.scheme)
         residual = PhysicsResidual(physics, model.n_intermediate, scheme, cfg.physics.units) if name == "physics" else None
         trainer = ModelTrainer(model, residual, lr=cfg.lr, weight_physics=cfg.physics.weight)
         trainer.ensure_normalization(train)
@@ -239,10 +239,6 @@ def run_model_eval(
             f"physics-informed: mean {p['mean']:.3e} median {p['median']:.3e}"
         )
     return summary
-
-
-def _scheme(name: str) -> Scheme:
-    return "solver" if name == "solver" else "etd"
 
 
 def _plot(rows: list[tuple[str, str, float]], path: Path, title: str) -> None:

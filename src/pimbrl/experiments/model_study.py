@@ -45,7 +45,7 @@ from ..envs import PhysicsEnv, Task
 from ..fileio import atomic_write_bytes
 from ..models import ModelTrainer, PhysicsResidual, TransitionData, TransitionModel, make_model
 from ..models.coefficients import LearnedCoefficients
-from ..models.residual import Scheme
+from ..models.residual import as_scheme
 from ..models.state_sources import broad_actions, choose_sources
 from ..physics import Physics
 from .model_eval import (
@@ -217,15 +217,10 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
     return payload
 
 
-def _scheme_of(cfg: ModelEvalConfig) -> Scheme:
-    """The residual scheme the study's settings name."""
-    return "solver" if cfg.scheme == "solver" else "etd"
-
-
 def _scheme_model(cfg: ModelEvalConfig, prior: Physics, learned: dict | None = None) -> tuple[TransitionModel, PhysicsResidual]:
     """The prior's coarse scheme as the model (physics-only), with ``learned`` coefficients free to fit if given."""
     n = PhysicsResidual.states_per_step(prior, cfg.n_intermediate)
-    residual = PhysicsResidual(prior, n, _scheme_of(cfg), learned=learned or None)
+    residual = PhysicsResidual(prior, n, as_scheme(cfg.scheme), learned=learned or None)
     return make_model(prior, n_intermediate=n, kind="physics", scheme=residual), residual
 
 
@@ -257,7 +252,7 @@ def _train(
     """
     torch.manual_seed(seed)
     model = make_model(physics, n_intermediate=cfg.n_intermediate, kind=network_of(cfg, physics))
-    scheme = _scheme_of(cfg)
+    scheme = as_scheme(cfg.scheme)
     residual = PhysicsResidual(
         physics, model.n_intermediate, scheme, cfg.physics.units, learned=learned if labelled is not None else None
     )

@@ -48,9 +48,16 @@ from ..physics.base import superpose
 from ..physics.pde import ETDRK4, SemilinearPDE
 from .coefficients import LearnedCoefficients
 
-__all__ = ["UNITS", "PhysicsResidual", "Scheme"]
+__all__ = ["UNITS", "PhysicsResidual", "Scheme", "as_scheme"]
 
 Scheme = Literal["etd", "solver"]
+
+
+def as_scheme(name: str) -> Scheme:
+    """The residual scheme a setting names: ``solver`` (the simulator's), else ``etd`` (the exponential integrator)."""
+    return "solver" if name == "solver" else "etd"
+
+
 #: units of the physics loss (see the module docstring)
 UNITS = ("substep", "step")
 

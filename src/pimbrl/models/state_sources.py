@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
+from ..config import BROAD_SOURCES, LOOP_SOURCES, PHYSICS_SOURCES
 from ..physics import Physics
 from .trainer import TransitionData
 
@@ -43,11 +44,9 @@ __all__ = [
     "even_shares",
 ]
 
-#: sources held by the training loop (real buffer, imagined buffer)
-LOOP_SOURCES = ("policy", "imagined")
-#: sources made from seed states and the physics by :func:`broad_states`
-BROAD_SOURCES = ("symmetry", "scaled", "noise", "box")
-SOURCES = LOOP_SOURCES + BROAD_SOURCES
+#: every source: those held by the training loop (:data:`LOOP_SOURCES`: real buffer, imagined buffer), then those
+#: made from seed states and the physics by :func:`broad_states` (:data:`BROAD_SOURCES`)
+SOURCES = PHYSICS_SOURCES
 
 
 def available_sources(physics: Physics) -> tuple[str, ...]:

@@ -24,7 +24,7 @@ from typing import Any
 
 from ..agents.config import AGENT_NAMES, AGENT_TYPES
 from ..config import UNSET, ConfigError, add_arguments, parse_learned, parse_prior
-from .config import Experimental, TrainConfig, resolve_config
+from .config import Experimental, TrainConfig, field_paths, resolve_config
 from .legacy import old_flag_message
 from .methods import METHOD_TYPES, METHODS, SECTIONS, methods_with
 
@@ -169,7 +169,6 @@ def overrides_from_namespace(args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
-_RUN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - set(_RUN_SKIP)
 #: what `--physics.sources` takes for every source the system offers
 ALL_SOURCES = ("auto", "all", "none")
 
@@ -179,11 +178,12 @@ def read_sources(names: tuple[str, ...]) -> tuple[str, ...]:
     return () if len(names) <= 1 and (not names or names[0] in ALL_SOURCES) else names
 
 
-_PREFIXES = ("agent.", "model.", "experimental.", *(f"{name}." for name in SECTIONS))
+#: the parser's destinations that are settings (the others: --steps, --env-kwargs, --preset, --quiet, ...)
+_SETTINGS = frozenset(field_paths())
 
 
 def _is_setting(dest: str) -> bool:
-    return dest in _RUN_FIELDS or dest in ("method", "agent") or dest.startswith(_PREFIXES)
+    return dest in _SETTINGS
 
 
 def _parser(positional_env: bool) -> argparse.ArgumentParser:

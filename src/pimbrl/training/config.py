@@ -24,6 +24,7 @@ from typing import Any
 
 from ..agents.config import AGENT_NAMES, AGENT_TYPES, AgentConfig, TD3Config
 from ..config import (
+    LOOP_SOURCES,
     MAX_SEED,
     MAX_STEPS,
     MAX_TRANSITIONS,
@@ -39,6 +40,7 @@ from ..config import (
     typed_value,
     validate,
 )
+from ..config import flag_of as setting_flag
 from .envinfo import (
     changed_env_kwargs,
     check_env_coefficients,
@@ -287,8 +289,8 @@ def get_setting(cfg: TrainConfig, path: str) -> Any:
 
 
 def flag_of(path: str) -> str:
-    """The command-line flag of the setting ``path`` (``imagine.rollout_length`` -> ``--imagine.rollout-length``)."""
-    return "--steps" if path == "total_steps" else "--" + path.replace("_", "-")
+    """The command-line flag of the setting ``path``, as a message names it (``total_steps``: its alias ``--steps``)."""
+    return "--steps" if path == "total_steps" else setting_flag(path)
 
 
 def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | None:
@@ -626,8 +628,8 @@ def check_coefficients(cfg: TrainConfig) -> None:
 
 #: physics-loss sources by kind of system (what :func:`pimbrl.models.state_sources.available_sources`
 #: gives for the PDEs and for the ODEs, without building the physics)
-PDE_SOURCES = ("policy", "imagined", "symmetry", "scaled", "noise")
-ODE_SOURCES = ("policy", "imagined", "box")
+PDE_SOURCES = (*LOOP_SOURCES, "symmetry", "scaled", "noise")
+ODE_SOURCES = (*LOOP_SOURCES, "box")
 
 
 def check_physics_sources(env: str, sources: tuple[str, ...]) -> None:

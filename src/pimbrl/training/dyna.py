@@ -37,7 +37,7 @@ from ..agents import Agent
 from ..buffers import Batch, ReplayBuffer, physics_extras
 from ..envs import Task
 from ..models import ModelEnv, ModelTrainer, PhysicsResidual, TransitionData, make_model
-from ..models.residual import Scheme
+from ..models.residual import as_scheme
 from ..models.reward import LearnedReward
 from ..models.state_sources import PhysicsPairs, broad_actions, broad_states, choose_sources
 from ..physics import Physics
@@ -102,7 +102,7 @@ class DynaModel:
         self.physics = task.physics.with_coefficients(**m.prior)
         self.adapter = adapter
         self.streams = streams
-        scheme: Scheme = "solver" if getattr(m, "scheme", "etd") == "solver" else "etd"
+        scheme = as_scheme(getattr(m, "scheme", "etd"))
         n_states = PhysicsResidual.states_per_step(self.physics, m.n_intermediate)
         residual = (
             PhysicsResidual(

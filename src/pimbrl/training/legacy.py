@@ -13,11 +13,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from ..config import ConfigError, parse_learned, parse_prior
+from ..config import ConfigError, flag_of, parse_learned, parse_prior
 
 __all__ = [
     "RENAMED",
-    "flag_of_path",
     "is_legacy",
     "legacy_method",
     "method_and_agent",
@@ -68,11 +67,6 @@ RENAMED: dict[str, str | None] = {
 }
 
 
-def flag_of_path(path: str) -> str:
-    """``imagine.rollout_length`` -> ``--imagine.rollout-length``."""
-    return "--" + path.replace("_", "-")
-
-
 def old_flag_message(flag: str) -> str | None:
     """A one-line message for a `pimbrl train` flag of the previous release (``None`` for any other flag)."""
     if not flag.startswith("--"):
@@ -86,7 +80,7 @@ def renamed_message(path: str) -> str | None:
     """A one-line message for an old setting's path (``None`` for any other path)."""
     key = path.replace("agent_config.", "agent.")
     if key not in RENAMED:
-        return f"{path} is now {key} ({flag_of_path(key)})" if key != path else None
+        return f"{path} is now {key} ({flag_of(key)})" if key != path else None
     new = RENAMED[key]
     if new is None:
         return (
@@ -94,7 +88,7 @@ def renamed_message(path: str) -> str | None:
             "or mlp; --method known-scheme (was physics under mbrl), identified-scheme (physics under pimbrl with "
             "learned coefficients), hybrid or pihybrid (hybrid under mbrl or pimbrl)"
         )
-    return f"{path} is now {new} ({flag_of_path(new)})"
+    return f"{path} is now {new} ({flag_of(new)})"
 
 
 def is_legacy(data: Mapping[str, Any]) -> bool:

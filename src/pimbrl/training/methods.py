@@ -35,6 +35,7 @@ from ..config import (
     MAX_LR,
     MAX_STEPS,
     MAX_TRANSITIONS,
+    PHYSICS_SOURCES,
     at_most,
     in_range,
     non_negative,
@@ -70,7 +71,7 @@ __all__ = [
 #: the networks a model-based method may train (``auto``: ConvLSTM for a PDE, an MLP for an ODE)
 NETWORKS = ("auto", "convlstm", "equivariant", "mlp")
 #: physics-loss sources (:mod:`pimbrl.models.state_sources`); which a system offers depends on its kind
-SOURCES = ("policy", "imagined", "symmetry", "scaled", "noise", "box")
+SOURCES = PHYSICS_SOURCES
 
 
 def pde_only(field: dataclasses.Field) -> bool:
