@@ -391,20 +391,18 @@ def test_a_system_without_a_preset_is_told_so_at_start(vanderpol: str, tmp_path,
 
 
 @pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
-def test_a_sweep_trial_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> None:
+def test_a_study_run_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> None:
     """A Ray worker is a fresh process: the trial carries its --import and loads it there."""
     plan = textwrap.dedent(
         f"""
         import pickle, sys
         from pimbrl.systems import import_systems
-        from pimbrl.experiments.sweep import Trial
         from pimbrl.training import resolve_config
         import_systems([{DUFFING!r}])
         fields = {{"method": "mfrl", "total_steps": 60, "warmup_steps": 20, "update_after": 20, "eval_every": 60,
                   "eval_episodes": 1}}
         cfg = resolve_config("example/Duffing-v0", fields)
-        trial = Trial("example/Duffing-v0", "mfrl", 0, (), {str(tmp_path / "trial")!r}, cfg, ({DUFFING!r},))
-        sys.stdout.buffer.write(pickle.dumps(trial))
+        sys.stdout.buffer.write(pickle.dumps(({str(tmp_path / "trial")!r}, cfg, ({DUFFING!r},))))
         """
     )
     pickled = subprocess.run([sys.executable, "-c", plan], capture_output=True, timeout=120, check=True).stdout
@@ -412,8 +410,8 @@ def test_a_sweep_trial_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> N
     run = textwrap.dedent(
         f"""
         import pickle
-        from pimbrl.experiments.sweep import execute_trial
-        out = execute_trial(pickle.loads(open({str(tmp_path / "trial.pkl")!r}, "rb").read()))
+        from pimbrl.experiments.engine import execute_run
+        out = execute_run(*pickle.loads(open({str(tmp_path / "trial.pkl")!r}, "rb").read()))
         print(out["ok"], out.get("error", ""))
         """
     )

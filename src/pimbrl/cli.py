@@ -447,6 +447,64 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _study_run_dir(spec_path: str, spec_name: str, given: str | None) -> Path:
+    """A study's directory: ``--run-dir``, else the spec's own directory, else ``runs/<study name>``.
+
+    The spec's own directory where it holds the study's record or registration (a spec written by `pimbrl
+    compare` or `pimbrl sweep` beside its runs).
+    """
+    from .experiments.engine import RECORD_FILE
+    from .experiments.registration import REGISTRATION_FILE
+
+    if given is not None:
+        return Path(given)
+    here = Path(spec_path).resolve().parent
+    if (here / RECORD_FILE).exists() or (here / REGISTRATION_FILE).exists():
+        return here
+    return Path("runs") / spec_name
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    from .experiments.engine import plan_study, run_study
+    from .experiments.report import load_record, study_report, write_pages
+    from .experiments.spec import load_spec
+
+    log = lambda m: print(m, flush=True)
+    if args.action == "report" and args.pages:
+        specs = [load_spec(p) for p in args.specs]
+        for path in write_pages(specs, args.pages):
+            print(f"wrote {path}")
+        return 0
+    if len(args.specs) != 1:
+        raise ValueError(f"`pimbrl study {args.action}` takes one spec (several only with report --pages), got {len(args.specs)}")
+    spec = load_spec(args.specs[0])
+    root = _study_run_dir(args.specs[0], spec.name, args.run_dir)
+    if args.action == "plan":
+        runs = plan_study(spec, root)
+        for r in runs:
+            print(f"{r.path}  {r.system} {r.arm} {r.setting_text} seed {r.seed}")
+        print(f"{len(runs)} runs of study {spec.name} ({spec.kind}); plan: {spec.plan or 'not stated in the spec'}")
+        return 0
+    if args.action == "run":
+        _check_run_dir(str(root))
+        record = run_study(spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun, log=log)
+        print(f"study {spec.name}: {len(record['runs'])} runs recorded in {root / 'record.json'}")
+        if record["failed"]:
+            print(f"failed runs: {', '.join(record['failed'])}", file=sys.stderr)
+            return 1
+        return 0
+    record = load_record(spec, root if spec.record is None or spec.record.format == "study" else None)
+    out = Path(args.out) if args.out else root
+    report = study_report(spec, record, figures_dir=out, link_base=out)
+    from .fileio import atomic_write_bytes
+
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out / "report.md", report.markdown.encode())
+    print(report.markdown)
+    print(f"wrote {out / 'report.md'}" + "".join(f", {f}" for f in report.figures))
+    return 0
+
+
 FIGURES = ("ks-contours", "burgers", "model-errors", "rollouts", "curves")
 #: each figure's default file in the run directory (model-eval writes model_errors.png: a histogram figure has its own)
 FIGURE_FILES = {
@@ -655,6 +713,25 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all)")
     _add_import(sw)
     sw.set_defaults(func=_cmd_sweep)
+
+    st = sub.add_parser(
+        "study",
+        help="run a study spec (systems x methods x seeds x settings), resumable; report its tables and hypotheses",
+        description="plan SPEC: list its runs. run SPEC: train what is missing (local processes or Ray) and write its "
+        "record. report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
+        "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. Format: pimbrl.experiments.spec.",
+    )
+    st.add_argument("action", choices=("plan", "run", "report"))
+    st.add_argument("specs", nargs="+", metavar="SPEC", help="study spec (YAML)")
+    st.add_argument("--run-dir", default=None, help="the study's directory (default: runs/<study name>)")
+    st.add_argument("--jobs", type=int, default=1, help="run: runs at a time (one process each, one thread each)")
+    st.add_argument("--backend", choices=("local", "ray"), default="local", help="run: local processes or Ray tasks")
+    st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
+    st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")
+    st.add_argument("--out", default=None, help="report: directory of report.md and figures (default: the run directory)")
+    st.add_argument("--pages", default=None, metavar="DOCS", help="report: write DOCS/results.md and DOCS/reproduce.md")
+    _add_import(st)
+    st.set_defaults(func=_cmd_study)
 
     fg = sub.add_parser(
         "figure",

@@ -31,32 +31,35 @@ resolved and checked before any trial runs. Finished trials are skipped (a finis
 time), interrupted ones resume from their checkpoint, and a failed trial is reported without stopping the
 others.
 
-Trials run as Ray tasks (one CPU each) on a local Ray instance started for the sweep, or on an existing
-cluster with ``--address`` (the workers need pimbrl installed and the run directory on a shared file
-system). Without Ray, or with ``--no-ray``, they run one after another in this process: the outputs are
-the same, since a trial's result depends only on its configuration and seed. The results are aggregated
+A sweep is a study (:func:`sweep_study`, run by :mod:`pimbrl.experiments.engine`, which also writes its
+record, ``DIR/record.json``, and ``DIR/study.yaml``: `pimbrl study report DIR/study.yaml` reports it).
+Trials run as Ray tasks (one CPU each) on a local Ray instance started for the sweep (its helper processes
+end with the driver, also a killed one), or on an existing cluster with ``--address`` (the workers need
+pimbrl installed and the run directory on a shared file system). Without Ray, or with ``--no-ray``, they
+run as local processes, one per core: the outputs are the same, since a trial's result depends only on
+its configuration and seed. The results are aggregated
 into ``DIR/results.csv`` (one row per trial), ``DIR/summary.json`` and ``DIR/curves.png``.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 import json
+import os
 import sys
-import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, typed_value
-from ..fileio import atomic_write_bytes, check_below
+from ..fileio import atomic_write_bytes
 from ..training import METHODS, RunDirectory, TrainConfig
 from ..training.cli_args import parse_train_args
-from ..training.config import applicable_overrides, config_to_dict, did_you_mean, resolve_config, run_names, typed_overrides
+from ..training.config import did_you_mean, typed_overrides
+from .engine import plan_study, ray_available, run_study
+from .spec import StudySpec, parse_spec, spec_to_yaml
 
-__all__ = ["SweepSpec", "Trial", "execute_trial", "load_sweep", "plan_trials", "ray_available", "run_sweep"]
+__all__ = ["SweepSpec", "Trial", "load_sweep", "plan_trials", "ray_available", "run_sweep", "sweep_study"]
 
 #: fields a sweep sets from its own keys (envs, methods, seeds), not from the grid or overrides
 _OWN = {"env": "envs", "method": "methods", "seed": "seeds"}
@@ -222,41 +225,34 @@ def _check_envs(path: Path, envs: Sequence[str]) -> None:
             raise ConfigError(f"{path}: 'envs': {exc}") from None
 
 
-#: the longest setting directory name kept as written (file systems allow 255 bytes)
-_MAX_NAME = 100
+def sweep_study(spec: SweepSpec, imports: Sequence[str] = ()) -> StudySpec:
+    """The study spec a sweep is: its environments, methods (as arms), seeds, grid and overrides.
 
-
-def _directory_name(setting: str) -> str:
-    """A setting's directory name: one path component inside the run root, whatever its values hold.
-
-    The setting as written where that is a safe component (no ``/``, no leading ``.``, printable, at most
-    100 characters: the names of earlier sweeps); otherwise characters other than letters, digits and
-    ``_ . , = + -`` become ``_``, the name is cut to 80 characters, and the first 8 hex digits of the
-    setting's SHA-256 are appended (two settings never share a directory). The trial's ``params`` keep the
-    values as written.
+    Runs live at ``DIR/<env>/<method>/<setting>/seed<k>`` (the full layout, as sweeps always had).
     """
-    import hashlib
-
-    safe = "/" not in setting and "\\" not in setting and not setting.startswith(".") and setting.isprintable()
-    if safe and 0 < len(setting.encode()) <= _MAX_NAME:
-        return setting
-    name = "".join(c if c.isalnum() or c in "_.,=+-" else "_" for c in setting)[:80].lstrip(".")
-    return f"{name or 'setting'}-{hashlib.sha256(setting.encode()).hexdigest()[:8]}"
-
-
-def _env_directory(env_id: str) -> str:
-    """An environment's directory name: the id's name for pimbrl's systems, ``namespace__Name-vN`` for others."""
-    namespace, _, name = env_id.rpartition("/")
-    return name if namespace in ("", "pimbrl") else f"{namespace}__{name}"
-
-
-def _same_run_key(env_id: str, method: str, cfg: TrainConfig) -> str:
-    """What makes two trials the same run: the environment, the method and the whole resolved configuration.
-
-    Numbers are compared as numbers (``9`` and ``9.0``), mappings whatever their order.
-    """
-    data = json.loads(json.dumps(config_to_dict(cfg), default=str), parse_int=float)
-    return json.dumps([env_id, method, data], sort_keys=True)
+    data: dict[str, Any] = {
+        "name": spec.name,
+        "systems": list(spec.envs),
+        "methods": list(spec.methods),
+        "seeds": list(spec.seeds),
+        "layout": "full",
+    }
+    if spec.grid:
+        data["grid"] = {k: list(v) for k, v in spec.grid.items()}
+    overrides = dict(spec.overrides)
+    if spec.threshold is not None:
+        overrides["threshold"] = float(spec.threshold)
+        data["thresholds"] = [float(spec.threshold)]
+    if overrides:
+        data["overrides"] = json.loads(json.dumps(overrides))
+    if spec.preset is not None:
+        data["preset"] = spec.preset
+    if imports:
+        data["imports"] = list(imports)
+    try:
+        return parse_spec(data, where=f"sweep {spec.name}", text=spec_to_yaml(data))
+    except ConfigError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
@@ -264,76 +260,8 @@ def plan_trials(spec: SweepSpec, root: str | Path) -> list[Trial]:
 
     Raises :class:`ConfigError` for any trial that is invalid, before anything runs.
     """
-    from ..simulate import resolve_env_id
-
-    root = Path(root).resolve()
-    keys = list(spec.grid)
-    fixed = typed_overrides(spec.overrides)
-    if spec.threshold is not None:
-        fixed["threshold"] = float(spec.threshold)
-    used: set[str] = set()
-    reasons: dict[str, str] = {}
-    trials = []
-    seen: dict[str, str] = {}  # each distinct run once: by its environment, method and resolved configuration
-    for env, method in itertools.product(spec.envs, spec.methods):
-        env_id = resolve_env_id(env)
-        for values in itertools.product(*(spec.grid[k] for k in keys)) if keys else [()]:
-            params = tuple(zip(keys, values))
-            setting = ",".join(f"{k}={v}" for k, v in params) or "default"
-            swept = typed_overrides(dict(params))
-            agent = run_names(env_id, {**fixed, **swept}, spec.preset)[1]
-            fields = dict(swept)
-            applied = applicable_overrides(env_id, method, agent, fixed, reasons)
-            fields.update(applied)
-            used.update(applied)
-            for seed in spec.seeds:
-                label = f"{env} {method} {setting} seed {seed}"
-                try:
-                    cfg = resolve_config(env_id, {**fields, "method": method, "seed": seed}, preset=spec.preset)
-                except ConfigError as exc:
-                    raise ConfigError(f"sweep {spec.name}, trial {env_id} {method} {setting} seed {seed}: {exc}") from None
-                key = _same_run_key(env_id, method, cfg)
-                if key in seen:
-                    raise ConfigError(
-                        f"sweep {spec.name}: {label} is the same run as {seen[key]} (a value, seed or environment given "
-                        "twice); give each once"
-                    )
-                seen[key] = label
-                path = root / _env_directory(env_id) / method / _directory_name(setting) / f"seed{seed}"
-                trials.append(Trial(env_id, method, seed, params, str(path), cfg))
-    unused = [reasons[k] for k in fixed if k not in used]
-    if unused:
-        raise ConfigError(f"sweep {spec.name}: {'; '.join(unused)} (methods {', '.join(spec.methods)})")
-    return trials
-
-
-def execute_trial(trial: Trial) -> dict[str, Any]:
-    """Train (or resume) one trial in this process; never raises (a failure is returned)."""
-    from ..systems import import_systems, load_entry_points
-    from ..training import RunDirectory, resume_training, run_training
-
-    try:
-        load_entry_points()  # a Ray worker is a fresh process: the user's systems are registered there too
-        import_systems(trial.imports)
-        status = RunDirectory(trial.path).status
-        if status == "finished":
-            return {"path": trial.path, "ok": True, "skipped": True}
-        if status is None:
-            run_training(trial.config, trial.path, progress=False)
-        else:
-            resume_training(trial.path, progress=False)
-        return {"path": trial.path, "ok": True, "skipped": False}
-    except Exception as exc:  # reported, the other trials go on
-        return {"path": trial.path, "ok": False, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
-
-
-def ray_available() -> bool:
-    """Whether Ray can be imported; a sweep runs its trials on Ray by default when it can."""
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    runs = plan_study(sweep_study(spec), Path(root).resolve())
+    return [Trial(r.system, r.arm, r.seed, r.setting, str(r.path), r.config) for r in runs]
 
 
 def run_sweep(
@@ -345,77 +273,32 @@ def run_sweep(
     log: Callable[[str], None] = print,
     imports: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Run the unfinished trials of ``spec`` and aggregate all of them into ``root``.
+    """Run the unfinished trials of ``spec`` (a study, :func:`sweep_study`) and aggregate all of them into ``root``.
 
     ``imports``: the ``--import`` arguments every trial's process loads first (files as absolute paths, so
-    that a Ray worker in another directory finds them).
+    that a Ray worker in another directory finds them). Without Ray (or ``use_ray=False``) the trials run as
+    local processes, ``num_cpus`` at a time (default: every core); the results are the same.
     """
     root = Path(root)
-    trials = plan_trials(spec, root)  # every configuration checked before anything runs
     absolute = tuple(str(Path(s).resolve()) if s.endswith(".py") or "/" in s else s for s in imports)
-    trials = [dataclasses.replace(t, imports=absolute) for t in trials]
-    base = root.resolve()
-    for trial in trials:  # DIR/<env>/<method>/<setting>/seed<k>: no link on the way below DIR
-        check_below(base, Path(trial.path).relative_to(base), "directory")
-    root.mkdir(parents=True, exist_ok=True)
-    todo = [t for t in trials if RunDirectory(t.path).status != "finished"]
+    study = sweep_study(spec, absolute)
+    trials = plan_trials(spec, root)  # every configuration checked before anything runs
     if use_ray is None:
         use_ray = ray_available()
     if use_ray and not ray_available():
         raise RuntimeError("Ray is not installed: pip install 'pimbrl[ray]', or run the sweep with --no-ray")
-    log(
-        f"sweep {spec.name}: {len(trials)} trials, {len(trials) - len(todo)} already finished, {len(todo)} to run"
-        + (" on Ray" if use_ray and todo else "")
-    )
-    outcomes: list[dict[str, Any]] = []
-    if todo and use_ray:
-        outcomes = _run_on_ray(todo, address, num_cpus, log)
-    else:
-        for trial in todo:
-            log(f"trial {trial.label} seed {trial.seed}")
-            outcomes.append(execute_trial(trial))
-    failed = [o for o in outcomes if not o["ok"]]
-    for o in failed:
-        log(f"FAILED {o['path']}: {o['error']}")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    jobs = num_cpus or cores
+    before = sum(1 for t in trials if RunDirectory(t.path).status == "finished")
+    record = run_study(study, root, jobs=jobs, backend="ray" if use_ray else "local", address=address, status=False, log=log)
     result = aggregate(spec, trials)
     for line in result["unreadable"]:
         log(f"UNREADABLE {line}")
-    result["failed"] = [o["path"] for o in failed]
-    result["executed"] = sum(1 for o in outcomes if o["ok"] and not o.get("skipped"))
+    result["failed"] = [str(root.resolve() / f) for f in record["failed"]]
+    after = sum(1 for t in trials if RunDirectory(t.path).status == "finished")
+    result["executed"] = after - before
     write_sweep_outputs(result, root, spec.name)
     return result
-
-
-def _run_on_ray(
-    trials: Sequence[Trial], address: str | None, num_cpus: int | None, log: Callable[[str], None]
-) -> list[dict[str, Any]]:
-    import ray
-
-    started_here = not ray.is_initialized()
-    if started_here:
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
-    try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(execute_trial)
-        refs = {remote.remote(t): t for t in trials}
-        outcomes = []
-        pending = list(refs)
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            for ref in done:
-                trial = refs[ref]
-                try:
-                    outcome = ray.get(ref)
-                except Exception as exc:  # a worker that died
-                    outcome = {"path": trial.path, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
-                log(f"{'done' if outcome['ok'] else 'failed'}: {trial.label} seed {trial.seed}")
-                outcomes.append(outcome)
-        return outcomes
-    finally:
-        if started_here:
-            ray.shutdown()
 
 
 def aggregate(spec: SweepSpec, trials: Sequence[Trial]) -> dict[str, Any]:

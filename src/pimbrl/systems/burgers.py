@@ -192,7 +192,7 @@ class BurgersTask(Task):
             more than about -60).
         **coefficients: physical coefficients of :class:`pimbrl.systems.Burgers` that differ from the paper's
             (``nu``, ``convection``, ``damping``, ``actuator_width``, ``drift``), e.g. ``nu=0.013``: a system whose
-            physics a prior may get wrong (docs/partial-physics.md).
+            physics a prior may get wrong (docs/journal/2026-11-24-partial-physics-identification.md).
     """
 
     max_episode_steps = 60

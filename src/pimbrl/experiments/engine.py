@@ -1,0 +1,393 @@
+"""The study engine: plan a spec's runs, train them (local processes or Ray, the same results), collect the record.
+
+:func:`plan_study` resolves every run's :class:`~pimbrl.training.TrainConfig` before anything runs (an
+invalid override, an unstable coefficient, a run given twice are errors here). :func:`run_study` trains
+what is missing: a finished run is skipped, an interrupted one resumed from its checkpoint, a failed one
+reported without stopping the others. Runs live at ``ROOT/ARM/seedK`` (one system, no grid) or
+``ROOT/SYSTEM/ARM/SETTING/seedK``. A study's directory is held by one driver at a time (``compare.lock``).
+
+:func:`collect_record` reads every run back into the study's record (``ROOT/record.json``): the spec's
+SHA-256 and text, its registration (:mod:`.registration`), the commit and CPU model of the collecting
+process, and per run its configuration's provenance (CPU model, cores, commit), real, imagined, scheme and
+validation transitions, agent updates, wall time and the per-evaluation curve.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import os
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..config import ConfigError
+from ..fileio import atomic_write_bytes, check_below
+from ..training.config import TrainConfig, applicable_overrides, config_to_dict, resolve_config, run_names, typed_overrides
+from ..training.rundir import RunDirectory, cpu_model, provenance, source_commit
+from .runner import RunSpec, check_reuse, lock_comparison, run_all
+from .spec import StudySpec
+
+__all__ = [
+    "RECORD_FILE",
+    "RECORD_FORMAT",
+    "SPEC_FILE",
+    "StudyRun",
+    "collect_record",
+    "directory_name",
+    "env_directory",
+    "execute_run",
+    "plan_study",
+    "run_study",
+    "same_run_key",
+    "study_thresholds",
+]
+
+#: the study's record in its directory
+RECORD_FILE = "record.json"
+#: the spec as run, in the study's directory
+SPEC_FILE = "study.yaml"
+#: the record's format tag (changes when its meaning does)
+RECORD_FORMAT = "pimbrl-study-record/1"
+#: the longest setting directory name kept as written (file systems allow 255 bytes)
+_MAX_NAME = 100
+
+
+@dataclass(frozen=True)
+class StudyRun:
+    """One run of a study: a system, an arm, a setting of the grid, a seed; its directory and configuration."""
+
+    system: str  # the environment id
+    arm: str
+    seed: int
+    setting: tuple[tuple[str, Any], ...]  # the grid values, as written in the spec
+    path: Path
+    config: TrainConfig
+
+    @property
+    def setting_text(self) -> str:
+        """``"key=value,..."`` (``"default"`` for no grid)."""
+        return ",".join(f"{k}={v}" for k, v in self.setting) or "default"
+
+    def label(self, compact: bool) -> str:
+        """The run's name in logs: its arm (compact studies), else system, arm and setting."""
+        if compact:
+            return self.arm
+        return f"{self.system.split('/')[-1]} {self.arm} {self.setting_text}"
+
+
+def directory_name(setting: str) -> str:
+    """A setting's directory name: one path component inside the study's root, whatever its values hold.
+
+    The setting as written where that is a safe component (no ``/``, no leading ``.``, printable, at most
+    100 characters); otherwise characters other than letters, digits and ``_ . , = + -`` become ``_``, the
+    name is cut to 80 characters, and the first 8 hex digits of the setting's SHA-256 are appended (two
+    settings never share a directory).
+    """
+    safe = "/" not in setting and "\\" not in setting and not setting.startswith(".") and setting.isprintable()
+    if safe and 0 < len(setting.encode()) <= _MAX_NAME:
+        return setting
+    name = "".join(c if c.isalnum() or c in "_.,=+-" else "_" for c in setting)[:80].lstrip(".")
+    return f"{name or 'setting'}-{hashlib.sha256(setting.encode()).hexdigest()[:8]}"
+
+
+def env_directory(env_id: str) -> str:
+    """A system's directory name: the id's name for pimbrl's systems, ``namespace__Name-vN`` for others."""
+    namespace, _, name = env_id.rpartition("/")
+    return name if namespace in ("", "pimbrl") else f"{namespace}__{name}"
+
+
+def same_run_key(env_id: str, method: str, cfg: TrainConfig) -> str:
+    """What makes two runs the same: the system, the method and the whole resolved configuration.
+
+    Numbers are compared as numbers (``9`` and ``9.0``), mappings whatever their order.
+    """
+    data = json.loads(json.dumps(config_to_dict(cfg), default=str), parse_int=float)
+    return json.dumps([env_id, method, data], sort_keys=True)
+
+
+def plan_study(spec: StudySpec, root: str | Path) -> list[StudyRun]:
+    """Every run of ``spec`` with its resolved configuration, in the spec's order.
+
+    The study's ``overrides`` go to every run they apply to (one applying to none is a :class:`ConfigError`
+    with the reason); an arm's own overrides and the grid's values must apply to the arm. Two runs with the
+    same system, method and resolved configuration are an error (a value, seed or alias given twice).
+    """
+    from ..simulate import resolve_env_id
+
+    if spec.imports:
+        from ..systems import import_systems
+
+        import_systems(spec.imports)
+    root = Path(root)
+    keys = list(spec.grid)
+    used: set[str] = set()
+    reasons: dict[str, str] = {}
+    seen: dict[str, str] = {}
+    runs: list[StudyRun] = []
+    for system in spec.systems:
+        env_id = resolve_env_id(system)
+        for arm in spec.arms:
+            for values in itertools.product(*(spec.grid[k] for k in keys)) if keys else [()]:
+                params = tuple(zip(keys, values))
+                setting = ",".join(f"{k}={v}" for k, v in params) or "default"
+                swept = typed_overrides(dict(params))
+                own = {**arm.overrides, **swept, "method": arm.method}
+                agent = run_names(env_id, {**spec.overrides, **own}, spec.preset)[1]
+                applied = applicable_overrides(env_id, arm.method, agent, spec.overrides, reasons)
+                used.update(applied)
+                fields = {**applied, **own}
+                where = f"study {spec.name}, {env_id} {arm.name}" + ("" if not params else f" {setting}")
+                try:
+                    if arm.match_updates and "utd" not in fields:  # the user's utd wins
+                        fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}, preset=spec.preset).utd
+                    first = resolve_config(env_id, {**fields, "seed": spec.seeds[0]}, preset=spec.preset)
+                except ConfigError as exc:
+                    raise ConfigError(f"{where}: {exc}") from None
+                for seed in spec.seeds:
+                    cfg = dataclasses.replace(first, seed=seed)
+                    key = same_run_key(env_id, arm.method, cfg)
+                    label = f"{where} seed {seed}"
+                    if key in seen:
+                        raise ConfigError(
+                            f"{label} is the same run as {seen[key]} (a value, seed, system or arm given twice); give each once"
+                        )
+                    seen[key] = label
+                    if spec.compact:
+                        path = root / arm.name / f"seed{seed}"
+                    else:
+                        path = root / env_directory(env_id) / arm.name / directory_name(setting) / f"seed{seed}"
+                    runs.append(StudyRun(env_id, arm.name, seed, params, path, cfg))
+    unused = [reasons[k] for k in spec.overrides if k not in used]
+    if unused:
+        raise ConfigError(f"study {spec.name}: {'; '.join(unused)} (arms: {', '.join(spec.arm_names)})")
+    return runs
+
+
+def study_thresholds(spec: StudySpec, system: str) -> list[float]:
+    """The thresholds the report counts steps to on ``system``: the spec's, else the system's recipe's."""
+    if spec.thresholds:
+        return list(spec.thresholds)
+    try:
+        threshold = resolve_config(system, {"method": "mfrl"}, preset=spec.preset).threshold
+    except (ConfigError, ValueError):
+        return []
+    return [] if threshold is None else [threshold]
+
+
+def execute_run(path: str, config: TrainConfig, imports: Sequence[str] = ()) -> dict[str, Any]:
+    """Train (or resume) one run in this process (a Ray task); never raises (a failure is returned)."""
+    from ..systems import import_systems, load_entry_points
+    from ..training import resume_training, run_training
+
+    try:
+        load_entry_points()  # a Ray worker is a fresh process: the user's systems are registered there too
+        import_systems(imports)
+        status = RunDirectory(path).status
+        if status == "finished":
+            return {"path": path, "ok": True, "skipped": True}
+        if status is None:
+            run_training(config, path, progress=False)
+        else:
+            resume_training(path, progress=False)
+        return {"path": path, "ok": True, "skipped": False}
+    except Exception as exc:  # reported, the other runs go on
+        return {"path": path, "ok": False, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+
+
+def run_study(
+    spec: StudySpec,
+    root: str | Path,
+    *,
+    jobs: int = 1,
+    backend: str = "local",
+    address: str | None = None,
+    rerun: bool = False,
+    status: bool = True,
+    run: bool = True,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Train what is missing of ``spec`` in ``root`` and return (and write) its record.
+
+    ``backend``: ``"local"`` (each run a child process, ``jobs`` at a time) or ``"ray"`` (each run a Ray task
+    on a local instance started here, or on the cluster at ``address``; the helper processes of a local
+    instance end with this process, also a killed one). ``run=False`` trains nothing and collects the runs as
+    they stand. A confirmatory spec must be committed before its first run (:mod:`.registration`).
+    """
+    from .registration import start_study
+
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"backend must be local or ray, got {backend!r}")
+    if spec.record is not None and spec.record.format != "study":
+        raise ConfigError(
+            f"study {spec.name} reads the record {spec.record.path} made before the study engine; it has no runs to make "
+            "(pimbrl study report shows it)"
+        )
+    root = Path(root)
+    runs = plan_study(spec, root)  # every configuration checked before anything runs
+    base = root.resolve()
+    for r in runs:  # no link on the way below the root (it would lead the runs elsewhere)
+        check_below(base, r.path.resolve().relative_to(base), "directory")
+    failed: list[str] = []
+    if run:
+        root.mkdir(parents=True, exist_ok=True)
+        lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
+        try:
+            start_study(spec, root)
+            if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
+                atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
+            specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
+            check_reuse(specs, rerun=rerun, log=log)
+            todo = [r for r in runs if RunDirectory(r.path).status != "finished"]
+            log(
+                f"study {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} finished, {len(todo)} to run"
+                + (" on Ray" if todo and backend == "ray" else "")
+            )
+            if backend == "ray" and todo:
+                failed = [str(Path(p).relative_to(root)) for p in _run_on_ray(todo, spec.imports, address, jobs, log)]
+            elif todo:
+                by_path = {str(r.path): r for r in todo}
+                bad = run_all(
+                    [s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports
+                )
+                failed = [str(s.path.relative_to(root)) for s in bad]
+        finally:
+            os.close(lock)
+    record = collect_record(spec, runs, root)
+    record["failed"] = failed
+    if run or (root / RECORD_FILE).exists() or record["runs"]:
+        root.mkdir(parents=True, exist_ok=True)
+        text = (json.dumps(record, indent=1, allow_nan=False) + "\n").encode()
+        atomic_write_bytes(root / RECORD_FILE, text)
+        if spec.record is not None and run:  # the copy the spec names (kept in the repository)
+            spec.record.path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(spec.record.path, text)
+    return record
+
+
+def ray_available() -> bool:
+    """Whether Ray can be imported."""
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _run_on_ray(
+    runs: Sequence[StudyRun], imports: Sequence[str], address: str | None, jobs: int, log: Callable[[str], None]
+) -> list[str]:
+    if not ray_available():
+        raise ConfigError("Ray is not installed: pip install 'pimbrl[ray]', or run with --backend local")
+    import ray
+
+    from .watchdog import watch_descendants
+
+    started_here = not ray.is_initialized()
+    watchdog = None
+    if started_here:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            watchdog = watch_descendants()  # Ray's helpers end with this process, also a killed one
+            ray.init(num_cpus=max(1, jobs), include_dashboard=False, log_to_driver=False)
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(execute_run)
+        refs = {remote.remote(str(r.path), r.config, tuple(imports)): r for r in runs}
+        failed = []
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                r = refs[ref]
+                try:
+                    outcome = ray.get(ref)
+                except Exception as exc:  # a worker that died
+                    outcome = {"path": str(r.path), "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+                if outcome["ok"]:
+                    log(f"done {r.label(False)} seed {r.seed}")
+                else:
+                    log(f"FAILED {r.label(False)} seed {r.seed}: {outcome['error']}; the others go on")
+                    failed.append(str(r.path))
+        return failed
+    finally:
+        if started_here:
+            ray.shutdown()
+        if watchdog is not None:
+            watchdog.stop()
+
+
+def _run_entry(spec: StudySpec, run: StudyRun, root: Path) -> dict[str, Any] | None:
+    run_dir = RunDirectory(run.path)
+    result = run_dir.result(None)
+    if result is None:
+        return None
+    payload = run_dir.read_config()
+    summary = payload.get("summary") or {}
+    curve = result.pop("curve")
+    rows = run_dir.evaluations.read()
+    curve["wall_s"] = [float(r["wall_s"]) for r in rows]
+    try:
+        relative = str(run.path.resolve().relative_to(root.resolve()))
+    except ValueError:
+        relative = str(run.path)
+    return {
+        "system": run.system,
+        "arm": run.arm,
+        "method": run.config.method.name,
+        "agent": run.config.agent.name,
+        "setting": run.setting_text,
+        "seed": run.seed,
+        "path": relative,
+        "finished": result["finished"],
+        "steps": result["steps"],
+        "budget": run.config.total_steps,
+        "final_return": result["final_return"],
+        "selected_step": summary.get("selected_step"),
+        "selected_return": summary.get("selected_return_mean"),
+        "wall_s": result["wall_s"],
+        "updates": result["updates"],
+        "real_transitions": summary.get("real_transitions", result["steps"] if not summary else None),
+        "imagined_transitions": summary.get("imagined_transitions"),
+        "scheme_transitions": summary.get("scheme_transitions"),
+        "validation_transitions": summary.get("validation_transitions"),
+        "provenance": payload.get("provenance"),
+        "curve": curve,
+    }
+
+
+def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) -> dict[str, Any]:
+    """The study's record from its run directories (runs not started yet are listed as missing)."""
+    from .registration import read_registration
+
+    root = Path(root)
+    entries, missing, unreadable = [], [], []
+    for run in runs:
+        try:
+            entry = _run_entry(spec, run, root)
+        except (ValueError, OSError) as exc:  # a damaged run directory: named, the others collected
+            unreadable.append(f"{run.path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+            continue
+        if entry is None:
+            missing.append(str(run.path))
+        else:
+            entries.append(entry)
+    return {
+        "format": RECORD_FORMAT,
+        "study": spec.name,
+        "kind": spec.kind,
+        "spec_sha256": spec.sha256,
+        "spec": spec.text,
+        "registration": read_registration(root),
+        "provenance": {**provenance(), "cpu": cpu_model(), "commit": source_commit()},
+        "collected_unix": time.time(),
+        "thresholds": {s: study_thresholds(spec, s) for s in dict.fromkeys(r.system for r in runs)},
+        "runs": entries,
+        "missing": missing,
+        "unreadable": unreadable,
+    }

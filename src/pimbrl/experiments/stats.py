@@ -1,0 +1,229 @@
+"""The statistics of a study: intervals, probability of improvement, censored steps to a threshold.
+
+Intervals come from rliable's stratified bootstrap; steps to a threshold treat runs that never reached
+it as censored.
+
+rliable (Agarwal et al. 2021) gives the interquartile mean, the stratified-bootstrap confidence intervals,
+the probability of improvement and performance profiles. Steps to a threshold is a time-to-event measure:
+a run that never reached the threshold needed more than its budget, so its value is censored; the median
+over runs is then bounded (:func:`censored_median`), and the probability of improvement ranks a run that
+never reached the threshold below every run that did. A maximum over a run's test evaluations is never a
+result here: a run's result is its final evaluation (or the policy its own selection kept).
+
+Every interval is computed with a fixed random state (``seed``), so a report reproduces its intervals.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "Interval",
+    "censored_median",
+    "iqm",
+    "iqm_interval",
+    "mean_interval",
+    "paired_difference",
+    "performance_profile",
+    "probability_of_improvement",
+    "steps_scores",
+    "verdict",
+]
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A point estimate with its confidence interval (``low``, ``high``) and the number of runs behind it."""
+
+    value: float
+    low: float
+    high: float
+    n: int
+
+    def text(self, fmt: str = "{:.2f}") -> str:
+        """``"-10.07 [-10.16, -10.05]"``; ``"—"`` for no runs."""
+        if self.n == 0 or not math.isfinite(self.value):
+            return "—"
+        return f"{fmt.format(self.value)} [{fmt.format(self.low)}, {fmt.format(self.high)}]"
+
+    def as_dict(self) -> dict[str, Any]:
+        """The interval as plain data (for records)."""
+        return {"value": self.value, "low": self.low, "high": self.high, "n": self.n}
+
+
+def _state(seed: int) -> np.random.RandomState:
+    return np.random.RandomState(seed)
+
+
+def _estimate(
+    scores: Sequence[np.ndarray], func: Callable[..., float], confidence: float, reps: int, seed: int
+) -> tuple[float, float, float]:
+    """The point estimate of ``func(*scores)`` and its stratified-bootstrap interval (rliable)."""
+    import warnings
+
+    from rliable import library
+
+    arrays = [np.asarray(s, dtype=float).reshape(-1, 1) for s in scores]
+    # rliable's stratified bootstrap draws its indices from NumPy's global generator (its random_state reaches
+    # arch only): seeded here, and the caller's global state put back afterwards
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        return _interval_estimate(library, arrays, func, confidence, reps, seed)
+    finally:
+        np.random.set_state(saved)
+
+
+def _interval_estimate(
+    library: Any, arrays: list[np.ndarray], func: Callable[..., float], confidence: float, reps: int, seed: int
+) -> tuple[float, float, float]:
+    import warnings
+
+    with warnings.catch_warnings():  # arch asks for a Generator; rliable passes the RandomState it documents
+        warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
+        point, interval = library.get_interval_estimates(
+            {"x": arrays if len(arrays) > 1 else arrays[0]},
+            lambda *a: np.array([func(*a)]),
+            reps=reps,
+            confidence_interval_size=confidence,
+            random_state=_state(seed),
+        )
+    return float(point["x"][0]), float(interval["x"][0, 0]), float(interval["x"][1, 0])
+
+
+def iqm(values: Sequence[float]) -> float:
+    """The interquartile mean (25 % trimmed at each end; rliable's aggregate_iqm)."""
+    from rliable import metrics
+
+    return float(metrics.aggregate_iqm(np.asarray(values, dtype=float).reshape(-1, 1)))
+
+
+def iqm_interval(values: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0) -> Interval:
+    """The IQM over runs with its stratified-bootstrap interval (a point without width for one run)."""
+    from rliable import metrics
+
+    values = [float(v) for v in values]
+    if not values:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    if len(values) == 1:
+        return Interval(values[0], values[0], values[0], 1)
+    value, low, high = _estimate([np.array(values)], lambda s: float(metrics.aggregate_iqm(s)), confidence, reps, seed)
+    return Interval(value, low, high, len(values))
+
+
+def mean_interval(values: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0) -> Interval:
+    """The mean over runs with its bootstrap interval."""
+    values = [float(v) for v in values]
+    if not values:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    if len(values) == 1:
+        return Interval(values[0], values[0], values[0], 1)
+    value, low, high = _estimate([np.array(values)], lambda s: float(np.mean(s)), confidence, reps, seed)
+    return Interval(value, low, high, len(values))
+
+
+def probability_of_improvement(
+    better: Sequence[float], than: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0
+) -> Interval:
+    """P(a run of ``better`` scores higher than a run of ``than``), ties counted half (rliable), with its interval.
+
+    Scores may hold ``-inf`` (a censored run ranked below every finite one, e.g. :func:`steps_scores`).
+    """
+    from rliable import metrics
+
+    x = np.asarray(better, dtype=float)
+    y = np.asarray(than, dtype=float)
+    if len(x) == 0 or len(y) == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    x, y = _ranked(x, y)
+    func = lambda a, b: float(metrics.probability_of_improvement(a, b))
+    value, low, high = _estimate([x, y], func, confidence, reps, seed)
+    return Interval(value, low, high, min(len(x), len(y)))
+
+
+def _ranked(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Finite stand-ins for infinite scores that keep every order (Mann-Whitney sees ranks only)."""
+    both = np.concatenate([x, y])
+    finite = both[np.isfinite(both)]
+    low = (finite.min() if finite.size else 0.0) - 1.0
+    high = (finite.max() if finite.size else 0.0) + 1.0
+    fix = lambda a: np.where(np.isneginf(a), low, np.where(np.isposinf(a), high, a))
+    return fix(x), fix(y)
+
+
+def paired_difference(
+    better: Mapping[int, float], than: Mapping[int, float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0
+) -> Interval:
+    """The mean over the seeds both arms ran of ``better[seed] - than[seed]``, with its bootstrap interval."""
+    common = sorted(set(better) & set(than))
+    diffs = [float(better[s]) - float(than[s]) for s in common]
+    return mean_interval(diffs, confidence, reps, seed)
+
+
+def steps_scores(steps: Sequence[int | None]) -> list[float]:
+    """Scores for ranking steps to a threshold: fewer steps score higher; a run that never reached it, ``-inf``."""
+    return [-math.inf if s is None else -float(s) for s in steps]
+
+
+def censored_median(steps: Sequence[int | None], budgets: Sequence[int]) -> dict[str, float | None]:
+    """The median over runs of the steps to a threshold, where runs that never reached it are censored.
+
+    ``steps[i]`` is ``None`` for a run that never reached it within ``budgets[i]`` steps: it needed more.
+    Counting such runs at their budgets gives a lower bound on the median, at infinity an upper bound; where
+    the two agree the median is measured (``median``), else it lies above the first (``above``) and at most
+    at the second where that is finite (``at_most``).
+    """
+    out: dict[str, float | None] = {"median": None, "above": None, "at_most": None}
+    if not steps:
+        return out
+    reached = [float(s) for s in steps if s is not None]
+    censored = [float(b) for s, b in zip(steps, budgets) if s is None]
+    low = float(np.median(reached + censored))
+    high = float(np.median(reached + [math.inf] * len(censored)))
+    if low == high:
+        out["median"] = low
+    else:
+        out["above"] = low
+        out["at_most"] = high if math.isfinite(high) else None
+    return out
+
+
+def median_text(median: Mapping[str, float | None]) -> str:
+    """``"55,000"``, ``"> 50,000 and <= 60,000"`` or ``"> 60,000"`` (see :func:`censored_median`)."""
+    if median.get("median") is not None:
+        return f"{median['median']:,.0f}"
+    if median.get("above") is None:
+        return "—"
+    text = f"> {median['above']:,.0f}"
+    return text if median.get("at_most") is None else f"{text} and <= {median['at_most']:,.0f}"
+
+
+def verdict(poi: Interval) -> str:
+    """A hypothesis "better beats than" judged on the probability of improvement's interval.
+
+    ``supported`` where the whole interval lies above 0.5, ``not supported`` where it lies at or below 0.5,
+    ``inconclusive`` where it contains 0.5 (or there are no runs).
+    """
+    if poi.n == 0 or not math.isfinite(poi.low):
+        return "inconclusive (no runs)"
+    if poi.low > 0.5:
+        return "supported"
+    if poi.high <= 0.5:
+        return "not supported"
+    return "inconclusive"
+
+
+def performance_profile(scores: Mapping[str, Sequence[float]], taus: Sequence[float]) -> dict[str, list[float]]:
+    """For each arm, the fraction of its runs scoring above each ``tau`` (rliable's run-score distribution)."""
+    from rliable import library
+
+    arrays = {k: np.asarray(v, dtype=float).reshape(-1, 1) for k, v in scores.items() if len(v)}
+    if not arrays:
+        return {}
+    profiles, _ = library.create_performance_profile(arrays, np.asarray(taus, dtype=float), reps=100)
+    return {k: [float(x) for x in v] for k, v in profiles.items()}

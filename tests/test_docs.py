@@ -1,0 +1,109 @@
+"""The Markdown documentation (docs/**/*.md and README.md) reads without project-internal numbering,
+with every code fence closed and every relative link pointing at a file that exists."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: "stop 21", "stops 21 and 22", "issue 13", "Issues 12": numbering a reader outside the project cannot follow
+INTERNAL_NUMBER = re.compile(r"\b(stops?|issues?)\s+\d+", re.IGNORECASE)
+#: an inline link or image, [text](target) or [text](target "title"); the target may be in angle brackets
+LINK = re.compile(r"!?\[[^\]]*\]\(\s*(<[^>]*>|[^)\s]+)(?:\s+\"[^\"]*\")?\s*\)")
+EXTERNAL = re.compile(r"^(https?:|mailto:)", re.IGNORECASE)
+
+
+def markdown_files() -> list[Path]:
+    return [*sorted((ROOT / "docs").rglob("*.md")), ROOT / "README.md"]
+
+
+def rel(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def fence_lines(text: str) -> list[int]:
+    """1-based numbers of the lines that open or close a code fence."""
+    return [i for i, line in enumerate(text.splitlines(), 1) if line.lstrip().startswith("```")]
+
+
+def prose(text: str) -> str:
+    """The text outside fenced code blocks and inline code spans, line numbers kept."""
+    out, in_fence = [], False
+    for line in text.splitlines():
+        if line.lstrip().startswith("```"):
+            in_fence = not in_fence
+            out.append("")
+            continue
+        out.append("" if in_fence else re.sub(r"`[^`]*`", "", line))
+    return "\n".join(out)
+
+
+def relative_links(text: str) -> list[tuple[int, str]]:
+    """(line, target) of each link whose target is a path in this repository (anchor and query removed)."""
+    links = []
+    for lineno, line in enumerate(prose(text).splitlines(), 1):
+        for match in LINK.finditer(line):
+            target = match.group(1).strip("<>")
+            if EXTERNAL.match(target):
+                continue
+            path = target.split("#", 1)[0].split("?", 1)[0]
+            if path:
+                links.append((lineno, path))
+    return links
+
+
+FILES = markdown_files()
+IDS = [rel(p) for p in FILES]
+
+
+def test_the_documentation_is_found() -> None:
+    assert (ROOT / "README.md") in FILES
+    assert len(FILES) > 5, IDS
+    assert any(p.parent.name == "journal" for p in FILES), "docs/journal/ holds no Markdown file"
+
+
+@pytest.mark.parametrize("path", FILES, ids=IDS)
+def test_no_internal_numbering(path: Path) -> None:
+    found = [
+        f"{rel(path)}:{lineno}: {match.group(0)!r}"
+        for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        for match in INTERNAL_NUMBER.finditer(line)
+    ]
+    assert not found, "project-internal numbering (say the date, or leave it out):\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("path", FILES, ids=IDS)
+def test_code_fences_are_closed(path: Path) -> None:
+    fences = fence_lines(path.read_text(encoding="utf-8"))
+    assert len(fences) % 2 == 0, f"{rel(path)}: an odd number of ``` lines ({len(fences)}), at lines {fences}"
+
+
+@pytest.mark.parametrize("path", FILES, ids=IDS)
+def test_relative_links_resolve(path: Path) -> None:
+    broken = [
+        f"{rel(path)}:{lineno}: {target}"
+        for lineno, target in relative_links(path.read_text(encoding="utf-8"))
+        if not (path.parent / target).exists()
+    ]
+    assert not broken, "links to files that do not exist:\n" + "\n".join(broken)
+
+
+def test_the_checks_catch_what_they_are_for() -> None:
+    """The helpers above on small samples: each check fails on the defect it exists for."""
+    assert INTERNAL_NUMBER.search("the runs of stop 21")
+    assert INTERNAL_NUMBER.search("(Stops 21 and 22)")
+    assert INTERNAL_NUMBER.search("issue  13's target")
+    assert INTERNAL_NUMBER.search("Issues 12")
+    assert not INTERNAL_NUMBER.search("stopped at 20,000 steps; 2026-11-21; tissue 3; nonstop 4")
+    assert len(fence_lines("```bash\nls\n```\n\n```\nopen\n")) % 2 == 1
+    assert len(fence_lines("text\n  ```python\n  x = 1\n  ```\n")) % 2 == 0
+    sample = (
+        "[a](results.md#x) ![f](figures/a.png) [web](https://example.org/a.md) [m](mailto:a@b.c)\n"
+        '[here](#local) `[code](not/a/link.md)` [t](<with space.md> "title")\n'
+        "```\n[fenced](nope.md)\n```\n"
+    )
+    assert relative_links(sample) == [(1, "results.md"), (1, "figures/a.png"), (2, "with space.md")]

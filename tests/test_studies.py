@@ -1,0 +1,370 @@
+"""Studies as specs: parsing, planning, running (local and Ray), records, statistics, registration, reports."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from pimbrl.cli import main
+from pimbrl.config import ConfigError
+from pimbrl.experiments import stats
+from pimbrl.experiments.engine import RECORD_FILE, collect_record, plan_study, run_study
+from pimbrl.experiments.registration import start_study, study_label
+from pimbrl.experiments.report import load_record, study_report
+from pimbrl.experiments.spec import load_spec, parse_spec
+from pimbrl.training import resolve_config
+from pimbrl.training.rundir import cpu_model
+
+#: a run of a few seconds (Pendulum, MFRL or a two-step model fit)
+TINY = {
+    "total_steps": 80,
+    "warmup_steps": 20,
+    "update_after": 20,
+    "eval_every": 40,
+    "eval_episodes": 1,
+    "agent.hidden": [32, 32],
+    "agent.batch_size": 32,
+    "model.start_after": 20,
+    "fit.steps": 1,
+    "check.threshold": 1e3,
+}
+
+#: the settings of TINY an MFRL run has
+TINY_MFRL = {k: v for k, v in TINY.items() if not k.startswith(("fit.", "model.", "check."))}
+
+
+def _spec(tmp_path: Path, name: str = "s.yaml", **data) -> Path:
+    body = {"systems": ["pendulum"], "methods": ["mfrl"], "seeds": [0], "overrides": TINY_MFRL, **data}
+    path = tmp_path / name
+    path.write_text(json.dumps(body))  # JSON is YAML
+    return path
+
+
+# ---------------------------------------------------------------------------------- the spec
+def test_a_spec_is_checked_when_read_and_identified_by_its_bytes(tmp_path) -> None:
+    path = _spec(tmp_path, methods={"mfrl": {}, "mbrl": {"overrides": {"fit.steps": 2}}}, seeds=3, thresholds=[-200])
+    spec = load_spec(path)
+    assert spec.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert spec.seeds == (0, 1, 2) and spec.arm_names == ("mfrl", "mbrl") and spec.arm("mbrl").overrides == {"fit.steps": 2}
+    assert spec.name == "s" and spec.kind == "exploratory" and spec.thresholds == (-200.0,)
+    bad = {
+        "colour": "unknown key 'colour'",
+        "methods": "unknown method 'pimbr'",
+        "seeds": "seed 1 is given twice",
+        "hypotheses": "'better' 'sac' is not an arm",
+        "kind": "'kind' must be one of exploratory, confirmatory",
+        "grid": "'seed' cannot be a grid key",
+        "statistics": "confidence must be in",
+    }
+    values = {
+        "colour": "red",
+        "methods": ["pimbr"],
+        "seeds": [1, 1],
+        "hypotheses": {"H1": {"claim": "x", "better": "sac", "than": "mfrl"}},
+        "kind": "final",
+        "grid": {"seed": [1, 2]},
+        "statistics": {"confidence": 1.5},
+    }
+    for key, message in bad.items():
+        with pytest.raises(ConfigError, match=message) as err:
+            load_spec(_spec(tmp_path, **{key: values[key]}))
+        assert str(tmp_path / "s.yaml") in str(err.value) and "\n" not in str(err.value)
+    (tmp_path / "broken.yaml").write_text("systems: [pendulum\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_spec(tmp_path / "broken.yaml")
+
+
+def test_a_huge_study_is_refused_when_read(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="more than a study gives an arm"):
+        load_spec(_spec(tmp_path, seeds=list(range(10_001))))
+    started = time.monotonic()
+    with pytest.raises(ConfigError, match="more than a study plans"):
+        load_spec(_spec(tmp_path, seeds=10_000, methods=["mfrl", "mbrl"], grid={"utd": [1, 2, 3, 4, 5, 6]}))
+    assert time.monotonic() - started < 5
+
+
+# ---------------------------------------------------------------------------------- planning
+def test_planning_resolves_every_run_with_its_arm_and_the_shared_overrides(tmp_path) -> None:
+    spec = load_spec(
+        _spec(
+            tmp_path,
+            methods={"mfrl": {}, "mfrl-matched": {}, "pimbrl-w0": {"method": "pimbrl", "overrides": {"physics.weight": 0.0}}},
+            seeds=[0, 2],
+            overrides=TINY,
+        )
+    )
+    runs = plan_study(spec, tmp_path / "root")
+    assert [(r.arm, r.seed) for r in runs] == [(a, s) for a in ("mfrl", "mfrl-matched", "pimbrl-w0") for s in (0, 2)]
+    assert runs[0].path == tmp_path / "root" / "mfrl" / "seed0"  # one system, no grid: ARM/seedK
+    by_arm = {r.arm: r.config for r in runs if r.seed == 2}
+    assert by_arm["mfrl"] == resolve_config("pimbrl/Pendulum-v0", {**TINY_MFRL, "method": "mfrl", "seed": 2})
+    assert by_arm["mfrl-matched"].utd == resolve_config("pimbrl/Pendulum-v0", {"method": "pimbrl"}).utd != by_arm["mfrl"].utd
+    assert by_arm["pimbrl-w0"].method.physics.weight == 0.0 and by_arm["pimbrl-w0"].method.fit.steps == 1
+
+
+def test_planning_refuses_duplicates_unused_overrides_and_stays_inside_its_root(tmp_path) -> None:
+    for duplicate in ({"grid": {"utd": [1, 1.0]}}, {"systems": ["pendulum", "pimbrl/Pendulum-v0"]}):
+        with pytest.raises(ConfigError, match="is the same run as"):
+            plan_study(load_spec(_spec(tmp_path, **duplicate)), tmp_path / "root")
+    with pytest.raises(ConfigError, match=r"physics\.weight"):  # applies to no arm
+        plan_study(load_spec(_spec(tmp_path, overrides={**TINY, "physics.weight": 0.5})), tmp_path / "root")
+    (run,) = plan_study(load_spec(_spec(tmp_path, grid={"env_kwargs": [{"observation": "x/../../../y"}]})), tmp_path / "root")
+    assert (tmp_path / "root") in run.path.parents and ".." not in run.path.parts
+    with pytest.raises(ConfigError, match="nu must be a finite number"):
+        plan_study(load_spec(_spec(tmp_path, systems=["burgers"], overrides={"env_kwargs": {"nu": 1e300}})), tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
+# ---------------------------------------------------------------------------------- running and records
+@pytest.mark.slow
+def test_a_study_runs_resumably_and_its_record_carries_provenance(tmp_path) -> None:
+    spec = load_spec(
+        _spec(tmp_path, methods=["mfrl", "mbrl"], seeds=2, comparisons=[["mbrl", "mfrl"]], thresholds=[-1500], overrides=TINY)
+    )
+    lines: list[str] = []
+    record = run_study(spec, tmp_path / "root", jobs=2, status=False, log=lines.append)
+    assert record == json.loads((tmp_path / "root" / RECORD_FILE).read_text()) | {"failed": []}
+    assert record["spec_sha256"] == spec.sha256 and record["spec"] == spec.text and not record["failed"]
+    assert record["provenance"]["cpu"] == cpu_model() != "x86_64"
+    assert (tmp_path / "root" / "study.yaml").read_text() == spec.text
+    assert len(record["runs"]) == 4 and not record["missing"]
+    for run in record["runs"]:
+        assert run["provenance"]["cpu"] == cpu_model() and run["provenance"]["cores"] >= 1
+        assert run["real_transitions"] == run["steps"] == 80 and run["finished"]
+        assert run["curve"]["step"] == [40, 80] and len(run["curve"]["wall_s"]) == 2
+        assert run["final_return"] == run["curve"]["return_mean"][-1]
+        assert run["updates"] > 0 and run["wall_s"] > 0
+        if run["arm"] == "mbrl":
+            assert run["imagined_transitions"] > 0 and run["scheme_transitions"] == 0
+        else:
+            assert run["imagined_transitions"] == 0
+    again: list[str] = []
+    second = run_study(spec, tmp_path / "root", status=False, log=again.append)  # finished runs are not run again
+    assert any("4 runs, 4 finished, 0 to run" in line for line in again) and not any(line.startswith("start") for line in again)
+    assert [r["final_return"] for r in second["runs"]] == [r["final_return"] for r in record["runs"]]
+    report = study_report(spec, record, figures_dir=tmp_path / "fig", link_base=tmp_path)
+    group = report.stats["groups"]["pimbrl/Pendulum-v0 default"]
+    assert group["arms"]["mfrl"]["mean"]["value"] == pytest.approx(
+        sum(r["final_return"] for r in record["runs"] if r["arm"] == "mfrl") / 2
+    )
+    assert "mbrl vs mfrl" in group["comparisons"] and report.figures and report.figures[0].exists()
+    assert "| mfrl | 2 (2) |" in report.markdown and "(exploratory)" in report.markdown
+
+
+def test_a_run_directory_of_another_study_is_refused(tmp_path) -> None:
+    (tmp_path / "root").mkdir()
+    start_study(load_spec(_spec(tmp_path, name="a.yaml")), tmp_path / "root")
+    with pytest.raises(ConfigError, match="holds the study 'a', not 'b'"):
+        start_study(load_spec(_spec(tmp_path, name="b.yaml")), tmp_path / "root")
+
+
+@pytest.mark.slow
+def test_local_processes_and_ray_give_the_same_runs(tmp_path) -> None:
+    pytest.importorskip("ray")
+    spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], overrides=TINY))
+    local = run_study(spec, tmp_path / "local", status=False, log=lambda m: None)
+    ray = run_study(spec, tmp_path / "ray", backend="ray", jobs=2, status=False, log=lambda m: None)
+    assert not local["failed"] and not ray["failed"] and len(local["runs"]) == len(ray["runs"]) == 2
+    for a, b in zip(local["runs"], ray["runs"]):
+        assert (a["arm"], a["seed"]) == (b["arm"], b["seed"])
+        assert a["curve"]["return_mean"] == b["curve"]["return_mean"] and a["updates"] == b["updates"]
+
+
+def test_the_watchdog_ends_a_killed_drivers_helpers(tmp_path) -> None:
+    """Ray's helpers live in sessions of their own; SIGKILL on the driver must not leave them running."""
+    pid_file = tmp_path / "helper.pid"
+    driver = textwrap.dedent(
+        f"""
+        import subprocess, sys, time
+        from pimbrl.experiments.watchdog import watch_descendants
+        watch_descendants()
+        # a helper in a session of its own, which starts one more process (like a raylet and its worker)
+        helper = subprocess.Popen([sys.executable, "-c",
+            "import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(300)']);"
+            "open({str(pid_file)!r}, 'w').write(f'{{p.pid}}'); time.sleep(300)"], start_new_session=True)
+        time.sleep(300)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", driver])
+    try:
+        deadline = time.monotonic() + 60
+        while not pid_file.exists() or not pid_file.read_text():
+            assert time.monotonic() < deadline, "the helper did not start"
+            time.sleep(0.1)
+        grandchild = int(pid_file.read_text())
+        time.sleep(1.0)  # the watchdog has looked at the tree since
+        os.kill(grandchild, 0)  # alive while the driver lives
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.monotonic() + 20
+        while Path(f"/proc/{grandchild}").exists() and _state(grandchild) != "Z":
+            assert time.monotonic() < deadline, "the helper outlived the killed driver"
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _state(pid: int) -> str:
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return "gone"
+    return text[text.rfind(")") + 2]
+
+
+# ---------------------------------------------------------------------------------- statistics
+def test_censored_medians_and_the_probability_of_improvement() -> None:
+    assert stats.censored_median([10, 20, 30], [100] * 3) == {"median": 20.0, "above": None, "at_most": None}
+    assert stats.censored_median([10, None, None], [100] * 3) == {"median": None, "above": 100.0, "at_most": None}
+    assert stats.censored_median([10, 20, None, None], [100] * 4) == {"median": None, "above": 60.0, "at_most": None}
+    assert stats.censored_median([10, 20, 30, None], [100] * 4) == {"median": 25.0, "above": None, "at_most": None}
+    # a run stopped early (budget 50) that never reached it: the median is bounded on both sides
+    assert stats.censored_median([10, 90, None, 5], [100, 100, 50, 100]) == {"median": None, "above": 30.0, "at_most": 50.0}
+    assert stats.median_text(stats.censored_median([10, 90, None, 5], [100, 100, 50, 100])) == "> 30 and <= 50"
+    faster = stats.probability_of_improvement(stats.steps_scores([10, 20, 30]), stats.steps_scores([None, None, 40]), reps=500)
+    assert faster.value == 1.0 and stats.verdict(faster) in ("supported", "inconclusive")
+    tied = stats.probability_of_improvement([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], reps=500)
+    assert tied.value == 0.5 and stats.verdict(tied) == "inconclusive"
+    worse = stats.probability_of_improvement([0.0] * 10, [1.0] * 10, reps=500)
+    assert worse.value == 0.0 and worse.high <= 0.5 and stats.verdict(worse) == "not supported"
+    better = stats.probability_of_improvement([1.0 + i for i in range(10)], [-1.0 - i for i in range(10)], reps=500)
+    assert better.low > 0.5 and stats.verdict(better) == "supported"
+
+
+def test_intervals_are_reproducible_and_contain_their_estimate() -> None:
+    values = [-10.0, -12.0, -9.0, -30.0, -11.0]
+    a = stats.iqm_interval(values, reps=1000, seed=3)
+    assert a == stats.iqm_interval(values, reps=1000, seed=3)
+    assert a.low <= a.value <= a.high and a.value == pytest.approx(stats.iqm(values)) and a.n == 5
+    assert a.value == pytest.approx((-10.0 - 12.0 - 11.0) / 3)  # 25 % trimmed at each end of 5: the middle three
+    m = stats.mean_interval(values, reps=1000)
+    assert m.value == pytest.approx(sum(values) / 5) and m.low < m.value < m.high
+    d = stats.paired_difference({0: 1.0, 1: 2.0, 5: 9.0}, {0: 0.0, 1: 1.0, 2: 7.0}, reps=500)
+    assert d.value == 1.0 and d.n == 2  # seeds both ran: 0 and 1
+    assert stats.mean_interval([]).text() == "—" and stats.mean_interval([4.0]).text() == "4.00 [4.00, 4.00]"
+    assert math.isnan(stats.probability_of_improvement([], [1.0]).value)
+
+
+def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
+    spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], seeds=2, comparisons=[["mbrl", "mfrl"]]))
+    runs = []
+    for arm, base in (("mfrl", -900.0), ("mbrl", -700.0)):
+        for seed in (0, 1):
+            curve = {
+                "step": [40, 80],
+                "return_mean": [base + seed, base - 50.0 + seed],
+                "return_min": [0, 0],
+                "return_max": [0, 0],
+            }
+            runs.append(
+                {
+                    "system": "pimbrl/Pendulum-v0",
+                    "arm": arm,
+                    "setting": "default",
+                    "seed": seed,
+                    "finished": True,
+                    "steps": 80,
+                    "final_return": base - 50.0 + seed,
+                    "best_return": 0.0,
+                    "curve": curve,
+                }
+            )
+    record = {"runs": runs, "thresholds": {"pimbrl/Pendulum-v0": [-800.0]}, "spec_sha256": spec.sha256}
+    report = study_report(spec, record)
+    arms = report.stats["groups"]["pimbrl/Pendulum-v0 default"]["arms"]
+    assert arms["mbrl"]["mean"]["value"] == pytest.approx(-749.5) and arms["mfrl"]["mean"]["value"] == pytest.approx(-949.5)
+    assert arms["mbrl"]["thresholds"]["-800"]["reached"] == 2 and arms["mfrl"]["thresholds"]["-800"]["reached"] == 0
+    assert arms["mbrl"]["thresholds"]["-800"]["median"]["median"] == 40.0
+    comparison = report.stats["groups"]["pimbrl/Pendulum-v0 default"]["comparisons"]["mbrl vs mfrl"]
+    assert comparison["outcome_poi"]["value"] == 1.0 and comparison["outcome_difference"]["value"] == pytest.approx(200.0)
+
+
+# ---------------------------------------------------------------------------------- registration
+def _git(repo: Path, *args: str) -> None:
+    env = {
+        **os.environ,
+        "GIT_AUTHOR_NAME": "t",
+        "GIT_AUTHOR_EMAIL": "t@t",
+        "GIT_COMMITTER_NAME": "t",
+        "GIT_COMMITTER_EMAIL": "t@t",
+    }
+    subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, env=env)
+
+
+def test_a_confirmatory_spec_must_be_committed_and_unchanged(tmp_path) -> None:
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    _git(repo, "init", "-q")
+    path = _spec(repo, name="c.yaml", kind="confirmatory")
+    spec = load_spec(path)
+    with pytest.raises(ConfigError, match="is not committed"):
+        start_study(spec, tmp_path / "run")
+    _git(repo, "add", "c.yaml")
+    time.sleep(1.1)  # commit times are whole seconds: the first start comes after the commit
+    _git(repo, "commit", "-q", "-m", "register")
+    time.sleep(1.1)
+    (tmp_path / "run").mkdir()
+    registration = start_study(spec, tmp_path / "run")
+    assert registration["registered"]["commit"] and registration["spec_sha256"] == spec.sha256
+    record = {"registration": registration, "spec_sha256": spec.sha256}
+    assert study_label(spec, record)[0] == "confirmatory"
+    path.write_text(path.read_text().replace('"seeds": [0]', '"seeds": [0, 1]'))  # changed after the first run started
+    changed = load_spec(path)
+    assert study_label(changed, record) == (
+        "exploratory",
+        "the spec changed after its first run started (its SHA-256 differs from the registered one)",
+    )
+    later = start_study(changed, tmp_path / "run")  # a later start with the changed spec is recorded too
+    assert study_label(spec, {"registration": later, "spec_sha256": spec.sha256})[0] == "exploratory"
+    assert study_label(load_spec(_spec(tmp_path)), {})[0] == "exploratory"
+
+
+# ---------------------------------------------------------------------------------- the command line and compare
+@pytest.mark.slow
+def test_study_commands_plan_run_and_report(tmp_path, capsys) -> None:
+    path = _spec(tmp_path, methods=["mfrl"], seeds=2, hypotheses={"H1": {"claim": "c", "better": "mfrl", "than": "mfrl"}})
+    root = tmp_path / "root"
+    assert main(["study", "plan", str(path), "--run-dir", str(root)]) == 0
+    assert "2 runs of study s (exploratory)" in capsys.readouterr().out and not root.exists()
+    assert main(["study", "run", str(path), "--run-dir", str(root), "--jobs", "2"]) == 0
+    assert main(["study", "report", str(path), "--run-dir", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "## s (exploratory)" in out and (root / "report.md").read_text() in out and "| H1 | c |" in out
+    assert main(["study", "run", str(tmp_path / "missing.yaml")]) == 2
+    assert "study spec" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_compare_writes_its_spec_and_the_study_report_reads_it(tmp_path) -> None:
+    from pimbrl.experiments.compare import compare
+
+    root = tmp_path / "cmp"
+    result = compare("pimbrl/Pendulum-v0", ["mfrl"], [0], root, TINY_MFRL, log=lambda m: None, status=False)
+    assert not result["failed"] and (root / "study.yaml").exists() and (root / RECORD_FILE).exists()
+    spec = load_spec(root / "study.yaml")
+    assert spec.compact and spec.arm_names == ("mfrl",) and spec.systems == ("pimbrl/Pendulum-v0",)
+    record = load_record(spec, root)
+    assert record["runs"][0]["final_return"] == result["runs"][0]["final_return"]
+    assert collect_record(spec, plan_study(spec, root), root)["runs"][0]["path"] == "mfrl/seed0"
+
+
+def test_a_spec_written_by_a_program_parses_back_to_the_same_study(tmp_path) -> None:
+    from pimbrl.experiments.compare import compare_spec
+
+    spec = compare_spec(
+        "pimbrl/Burgers-v0", ["mfrl", "pimbrl", "mfrl-matched"], [0, 3], {"physics.sources": ("policy", "box")}, "paper", -11.0
+    )
+    again = parse_spec(__import__("yaml").safe_load(spec.text), text=spec.text)
+    assert again == spec and spec.comparisons == (("pimbrl", "mfrl"), ("pimbrl", "mfrl-matched"))
+    assert spec.arm("mfrl-matched").match_updates and spec.overrides == {"physics.sources": ("policy", "box")}
