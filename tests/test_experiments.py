@@ -51,7 +51,7 @@ def test_sweep_in_process_and_on_ray_give_the_same_table(tmp_path, capsys) -> No
     capsys.readouterr()
     assert main(["sweep", spec, "--run-dir", str(tmp_path / "ray")]) == 0
     out = capsys.readouterr().out
-    assert "2 already finished, 0 to run" in out and "0 run now" in out
+    assert "2 runs, 2 finished, 0 to run" in out and "0 run now" in out
     assert _results(tmp_path / "ray") == ray
 
 

@@ -368,3 +368,40 @@ def test_a_spec_written_by_a_program_parses_back_to_the_same_study(tmp_path) -> 
     again = parse_spec(__import__("yaml").safe_load(spec.text), text=spec.text)
     assert again == spec and spec.comparisons == (("pimbrl", "mfrl"), ("pimbrl", "mfrl-matched"))
     assert spec.arm("mfrl-matched").match_updates and spec.overrides == {"physics.sources": ("policy", "box")}
+
+
+def test_the_example_studies_plan_what_the_partial_physics_driver_ran(tmp_path) -> None:
+    """examples/studies/ replaces benchmarks/run_partial_physics.py: each arm is the method it ran."""
+    spec = load_spec(Path(__file__).resolve().parents[1] / "examples" / "studies" / "partial_physics_burgers.yaml")
+    runs = plan_study(spec, tmp_path)
+    assert len(runs) == 18 and {r.config.env_kwargs["nu"] for r in runs} == {0.013}
+    by_arm = {r.arm: r.config for r in runs if r.seed == 0}
+    assert by_arm["pimbrl-wrong"].method.prior == {"nu": 0.01} and by_arm["pimbrl-true"].method.prior == {}
+    assert by_arm["pimbrl-learned"].method.learn.coefficients == {"nu": None}
+    assert (
+        by_arm["known-scheme-wrong"].method.name == "known-scheme"
+        and by_arm["identified-scheme"].method.name == "identified-scheme"
+    )
+
+
+def test_the_generated_pages_cover_every_study_and_links_into_them_resolve() -> None:
+    """docs/results.md and docs/reproduce.md are `pimbrl study report --pages` output, one section per spec."""
+    import re
+
+    from pimbrl.experiments.report import GENERATED, _anchor
+
+    repo = Path(__file__).resolve().parents[1]
+    results = (repo / "docs" / "results.md").read_text()
+    reproduce = (repo / "docs" / "reproduce.md").read_text()
+    assert results.splitlines()[2] == GENERATED and reproduce.splitlines()[2] == GENERATED
+    specs = sorted((repo / "benchmarks" / "studies").glob("*.yaml"))
+    anchors = set()
+    for path in specs:
+        spec = load_spec(path)
+        heading = re.search(rf"^## {re.escape(spec.name)} \((exploratory|confirmatory)\)$", results, re.M)
+        assert heading, f"{spec.name} has no section in docs/results.md: run pimbrl study report --pages"
+        assert f"SHA-256 `{spec.sha256[:16]}`" in results, f"docs/results.md has an older {spec.name}: regenerate it"
+        anchors.add(_anchor(spec.name, heading.group(1)))
+    for page in [repo / "README.md", *sorted((repo / "docs").glob("*.md"))]:
+        for anchor in re.findall(r"results\.md#([^)\s]+)\)", page.read_text()):
+            assert anchor in anchors, f"{page.name} links to results.md#{anchor}, which is not a study's section"

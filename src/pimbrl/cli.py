@@ -472,7 +472,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
     log = lambda m: print(m, flush=True)
     if args.action == "report" and args.pages:
         specs = [load_spec(p) for p in args.specs]
-        for path in write_pages(specs, args.pages):
+        header = Path(args.specs[0]).resolve().parent / "_reproduce.md"  # the page's hand-written part, if any
+        preamble = header.read_text(encoding="utf-8") if header.is_file() else ""
+        for path in write_pages(specs, args.pages, preamble=preamble):
             print(f"wrote {path}")
         return 0
     if len(args.specs) != 1:

@@ -34,7 +34,6 @@ threshold, final and best mean test return, wall-clock, updates and the update-t
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -60,6 +59,7 @@ from .runner import (
     run_all,
 )
 from .spec import StudySpec, parse_spec, spec_to_yaml
+from .stats import censored_median
 
 __all__ = [
     "CHILD_LOG",
@@ -221,23 +221,12 @@ def median_steps_to_threshold(mine: Sequence[dict[str, Any]]) -> dict[str, Any]:
     (``steps_to_threshold_median_above``) and at most at the second where that is finite
     (``steps_to_threshold_median_at_most``, else ``None``). All three ``None`` for no runs.
     """
-    reached = [float(r["steps_to_threshold"]) for r in mine if r["steps_to_threshold"] is not None]
-    budgets = [float(r["steps"]) for r in mine if r["steps_to_threshold"] is None]
-    out: dict[str, Any] = {
-        "steps_to_threshold_median": None,
-        "steps_to_threshold_median_above": None,
-        "steps_to_threshold_median_at_most": None,
+    median = censored_median([r["steps_to_threshold"] for r in mine], [r["steps"] for r in mine])
+    return {
+        "steps_to_threshold_median": median["median"],
+        "steps_to_threshold_median_above": median["above"],
+        "steps_to_threshold_median_at_most": median["at_most"],
     }
-    if not mine:
-        return out
-    low = float(np.median(reached + budgets))
-    high = float(np.median(reached + [math.inf] * len(budgets)))
-    if low == high:
-        out["steps_to_threshold_median"] = low
-    else:
-        out["steps_to_threshold_median_above"] = low
-        out["steps_to_threshold_median_at_most"] = high if math.isfinite(high) else None
-    return out
 
 
 def steps_text(measured: float | None, above: float | None, at_most: float | None = None) -> str:

@@ -279,6 +279,8 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
         name = Path(spec.path).name if spec.path else "SPEC"
         lines.append(f"- **Command**: `pimbrl study run {name} && pimbrl study report {name}`")
     cpu = ", ".join(c for c in cpus if c != "None") or prov.get("cpu") or "not recorded"
+    if cpu == "x86_64":  # what records made before the engine wrote: the architecture, not the model
+        cpu = "model not recorded (x86_64)"
     commit = ", ".join(c for c in commits if c != "None") or (
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
@@ -362,8 +364,14 @@ def _curves_figure(
     )
 
 
-def write_pages(specs: Sequence[StudySpec], docs: str | Path, run_dirs: dict[str, Path] | None = None) -> list[Path]:
-    """docs/results.md (one section per study) and docs/reproduce.md (each study's command), from the records."""
+def write_pages(
+    specs: Sequence[StudySpec], docs: str | Path, run_dirs: dict[str, Path] | None = None, preamble: str = ""
+) -> list[Path]:
+    """docs/results.md (one section per study) and docs/reproduce.md (each study's command), from the records.
+
+    ``preamble``: hand-written Markdown for docs/reproduce.md (the paper's figures and their commands; no
+    numbers), placed before the generated tables.
+    """
     from ..fileio import atomic_write_bytes
 
     docs = Path(docs)
@@ -398,15 +406,31 @@ def write_pages(specs: Sequence[StudySpec], docs: str | Path, run_dirs: dict[str
         "",
         GENERATED,
         "",
-        "Every study below is a spec in benchmarks/studies/. A study made with the study engine runs again with "
+        "Every study is a spec in benchmarks/studies/. A study made with the study engine runs again with "
         "`pimbrl study run SPEC --run-dir DIR` (resumable: run it again after an interruption) and its tables come "
-        "from `pimbrl study report SPEC --run-dir DIR`. A study recorded before the engine names the command that "
-        "made its record. Results are bit for bit only on one CPU model: expect other figures, within the spread over "
-        "seeds, on another machine.",
+        "from `pimbrl study report SPEC --run-dir DIR`; a study recorded before the engine names the command that "
+        "made its record. Results are bit for bit only on one CPU model: on another machine expect other figures, "
+        "within the spread over seeds.",
         "",
-        "| study | label | command |",
-        "|---|---|---|",
     ]
+    if preamble:
+        repro += [preamble.strip(), ""]
+    beside = [(spec, r) for spec, r in reports if spec.paper]
+    if beside:
+        repro += [
+            "## Our numbers beside the paper's",
+            "",
+            "Ours: per arm, how many runs reached each threshold and their censored median of real steps, and the "
+            "IQM of the final returns (generated from the study's record; the link has the intervals).",
+            "",
+            "| study | the paper reports | we measured | label |",
+            "|---|---|---|---|",
+        ]
+        for spec, r in beside:
+            link = f"[{spec.name}](results.md#{_anchor(spec.name, r.label)})"
+            repro.append(f"| {link} | {spec.paper.strip()} | {_summary_line(r)} | {r.label} |")
+        repro.append("")
+    repro += ["## Every study", "", "| study | label | command |", "|---|---|---|"]
     for spec, r in reports:
         if spec.record is not None and spec.record.format != "study":
             command = spec.record.command or "(not recorded)"
@@ -417,6 +441,22 @@ def write_pages(specs: Sequence[StudySpec], docs: str | Path, run_dirs: dict[str
     reproduce = docs / "reproduce.md"
     atomic_write_bytes(reproduce, ("\n".join(repro) + "\n").encode())
     return [results, reproduce, *[f for _, r in reports for f in r.figures]]
+
+
+def _summary_line(report: Report) -> str:
+    """One line per system of a report: each arm's reached runs and median steps, and its IQM."""
+    parts = []
+    for key, group in report.stats["groups"].items():
+        system, _, setting = key.partition(" ")
+        arms = []
+        for arm, s in group["arms"].items():
+            steps = "; ".join(
+                f"{t}: {st['reached']}/{s['runs']}, {stats.median_text(st['median'])}" for t, st in s["thresholds"].items()
+            )
+            arms.append(f"{arm} {steps + '; ' if steps else ''}IQM {_interval(s['iqm']).text().split(' [')[0]}")
+        where = _short(system) + ("" if setting == "default" else f" {setting}")
+        parts.append(f"{where}: " + "; ".join(arms))
+    return "<br>".join(parts)
 
 
 def _anchor(name: str, label: str) -> str:

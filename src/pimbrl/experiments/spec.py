@@ -23,6 +23,7 @@ writes its tables, figures and hypothesis verdicts from that record. A spec::
       H1: {claim: PiMBRL reaches -11 in fewer real steps than MBRL, better: pimbrl, than: mbrl,
            metric: steps_to_threshold, threshold: -11}
     plan: 9 runs x 4 min / 2 cores = 18 min   # the compute plan, stated before the first run
+    paper: PiMBRL reaches its target after 800 steps, MBRL 1,300   # docs/reproduce.md puts ours beside it
 
 A study whose runs were made before the study engine existed names its record instead of running::
 
@@ -92,6 +93,7 @@ _KEYS = {
     "comparisons",
     "hypotheses",
     "plan",
+    "paper",
     "layout",
     "record",
     "imports",
@@ -162,6 +164,8 @@ class StudySpec:
     comparisons: tuple[tuple[str, str], ...] = ()
     hypotheses: tuple[Hypothesis, ...] = ()
     plan: str = ""
+    #: what the paper reports for the question this study answers (docs/reproduce.md puts ours beside it)
+    paper: str = ""
     #: run directories: "compact" (ARM/seedK for one system without a grid) or "full" (SYSTEM/ARM/SETTING/seedK)
     layout: str = "auto"
     record: RecordSource | None = None
@@ -425,6 +429,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         comparisons=_pairs(data.get("comparisons") or [], names, where),
         hypotheses=_hypotheses(data.get("hypotheses") or {}, names, systems, where),
         plan=str(data.get("plan", "")),
+        paper=str(data.get("paper", "")),
         layout=layout,
         record=record,
         imports=tuple(imports),

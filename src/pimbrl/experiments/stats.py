@@ -64,8 +64,6 @@ def _estimate(
     scores: Sequence[np.ndarray], func: Callable[..., float], confidence: float, reps: int, seed: int
 ) -> tuple[float, float, float]:
     """The point estimate of ``func(*scores)`` and its stratified-bootstrap interval (rliable)."""
-    import warnings
-
     from rliable import library
 
     arrays = [np.asarray(s, dtype=float).reshape(-1, 1) for s in scores]
