@@ -505,7 +505,7 @@ def test_two_comparisons_in_one_directory_do_not_run_at_once(tmp_path) -> None:
     held = os.open(root / COMPARE_LOCK, os.O_RDWR | os.O_CREAT)
     try:
         fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running comparison holds it
-        with pytest.raises(ConfigError, match="is in use by another pimbrl compare"):
+        with pytest.raises(ConfigError, match="is in use by another pimbrl driver"):
             compare("pimbrl/Pendulum-v0", ["mfrl"], [0], root, {"total_steps": 200}, log=lambda m: None, status=False)
         assert not (root / "mfrl").exists()  # nothing was started
         summary = compare("pimbrl/Pendulum-v0", ["mfrl"], [0], root, {"total_steps": 200}, run=False, log=lambda m: None)

@@ -157,8 +157,10 @@ def test_a_study_runs_resumably_and_its_record_carries_provenance(tmp_path) -> N
     assert group["arms"]["mfrl"]["mean"]["value"] == pytest.approx(
         sum(r["final_return"] for r in record["runs"] if r["arm"] == "mfrl") / 2
     )
-    assert "mbrl vs mfrl" in group["comparisons"] and report.figures and report.figures[0].exists()
-    assert "| mfrl | 2 (2) |" in report.markdown and "(exploratory)" in report.markdown
+    assert "mbrl vs mfrl" in group["comparisons"] and len(report.figures) == 2 and all(f.exists() for f in report.figures)
+    assert report.figures[1].name.endswith("_profile.png") and "performance profile" in report.markdown
+    assert "| mfrl | 2 |" in report.markdown and "(exploratory)" in report.markdown
+    assert "fewer than 5 runs per arm" not in report.markdown  # no hypotheses in this spec
 
 
 def test_a_run_directory_of_another_study_is_refused(tmp_path) -> None:
@@ -233,13 +235,20 @@ def test_censored_medians_and_the_probability_of_improvement() -> None:
     assert stats.censored_median([10, 90, None, 5], [100, 100, 50, 100]) == {"median": None, "above": 30.0, "at_most": 50.0}
     assert stats.median_text(stats.censored_median([10, 90, None, 5], [100, 100, 50, 100])) == "> 30 and <= 50"
     faster = stats.probability_of_improvement(stats.steps_scores([10, 20, 30]), stats.steps_scores([None, None, 40]), reps=500)
-    assert faster.value == 1.0 and stats.verdict(faster) in ("supported", "inconclusive")
+    assert faster.value == 1.0 and stats.verdict(faster, (3, 3)) == "inconclusive (fewer than 5 runs per arm)"
+    one = stats.probability_of_improvement([1.0], [0.0], reps=500)  # perfectly separated: the interval is [1, 1]
+    assert (one.low, one.high) == (1.0, 1.0) and stats.verdict(one, (1, 1)).startswith("inconclusive")
     tied = stats.probability_of_improvement([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], reps=500)
     assert tied.value == 0.5 and stats.verdict(tied) == "inconclusive"
+    never = stats.probability_of_improvement(stats.steps_scores([None] * 6), stats.steps_scores([None] * 6), reps=500)
+    assert (never.low, never.high) == (0.5, 0.5) and stats.verdict(never, (6, 6)) == "inconclusive"
+    # a run stopped at 100 steps cannot rank below one that reached the threshold at 6,000
+    assert not stats.comparable_steps([5000, 6000], [9000, 9000], [None, None], [100, 9000])
+    assert stats.comparable_steps([5000, 6000], [9000, 9000], [None, None], [9000, 9000])
     worse = stats.probability_of_improvement([0.0] * 10, [1.0] * 10, reps=500)
-    assert worse.value == 0.0 and worse.high <= 0.5 and stats.verdict(worse) == "not supported"
+    assert worse.value == 0.0 and worse.high < 0.5 and stats.verdict(worse, (10, 10)) == "not supported"
     better = stats.probability_of_improvement([1.0 + i for i in range(10)], [-1.0 - i for i in range(10)], reps=500)
-    assert better.low > 0.5 and stats.verdict(better) == "supported"
+    assert better.low > 0.5 and stats.verdict(better, (10, 10)) == "supported"
 
 
 def test_intervals_are_reproducible_and_contain_their_estimate() -> None:
@@ -308,7 +317,7 @@ def test_a_confirmatory_spec_must_be_committed_and_unchanged(tmp_path) -> None:
     _git(repo, "init", "-q")
     path = _spec(repo, name="c.yaml", kind="confirmatory")
     spec = load_spec(path)
-    with pytest.raises(ConfigError, match="is not committed"):
+    with pytest.raises(ConfigError, match="is not registered"):
         start_study(spec, tmp_path / "run")
     _git(repo, "add", "c.yaml")
     time.sleep(1.1)  # commit times are whole seconds: the first start comes after the commit
@@ -405,3 +414,136 @@ def test_the_generated_pages_cover_every_study_and_links_into_them_resolve() -> 
     for page in [repo / "README.md", *sorted((repo / "docs").glob("*.md"))]:
         for anchor in re.findall(r"results\.md#([^)\s]+)\)", page.read_text()):
             assert anchor in anchors, f"{page.name} links to results.md#{anchor}, which is not a study's section"
+
+
+# ---------------------------------------------------------------------------------- what a report counts (review)
+def _fake_runs(arms: dict[str, float], seeds: int, finished: bool = True) -> list[dict]:
+    runs = []
+    for arm, base in arms.items():
+        for seed in range(seeds):
+            value = base + seed
+            curve = {"step": [40, 80], "return_mean": [value, value], "return_min": [0, 0], "return_max": [0, 0]}
+            runs.append({"system": "pimbrl/Pendulum-v0", "arm": arm, "setting": "default", "seed": seed, "finished": finished,
+                         "steps": 80, "final_return": value, "curve": curve})  # fmt: skip
+    return runs
+
+
+def test_unfinished_runs_are_left_out_and_make_hypotheses_inconclusive(tmp_path) -> None:
+    hypotheses = {"H1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
+    spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], seeds=6, hypotheses=hypotheses, statistics={"reps": 200}))
+    runs = _fake_runs({"mfrl": -900.0, "mbrl": -700.0}, 6)
+    record = {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256}
+    assert study_report(spec, record).stats["hypotheses"]["H1 pimbrl/Pendulum-v0 default"]["verdict"] == "supported"
+    stopped = {**runs[0], "seed": 6, "final_return": -5000.0, "finished": False}  # a crashed run's last evaluation
+    report = study_report(spec, {**record, "runs": [*runs, stopped]})
+    arms = report.stats["groups"]["pimbrl/Pendulum-v0 default"]["arms"]
+    assert arms["mfrl"]["runs"] == 6 and -5000.0 not in arms["mfrl"]["outcome"].values()
+    assert "Unfinished runs, left out of every statistic here: mfrl 1." in report.markdown
+    assert report.stats["hypotheses"]["H1 pimbrl/Pendulum-v0 default"]["verdict"] == "inconclusive (runs missing or unfinished)"
+
+
+def test_a_report_leaves_out_runs_of_other_settings(tmp_path) -> None:
+    path = _spec(tmp_path)
+    record = run_study(load_spec(path), tmp_path / "root", status=False, log=lambda m: None)
+    assert len(record["runs"]) == 1
+    path.write_text(path.read_text().replace('"agent.batch_size": 32', '"agent.batch_size": 64'))
+    changed = load_spec(path)
+    again = load_record(changed, tmp_path / "root")
+    assert not again["runs"] and "agent.batch_size (32 there, 64 requested)" in again["mismatched"][0]
+    assert "Runs left out because their recorded configuration is not the spec's: 1" in study_report(changed, again).markdown
+
+
+def test_a_record_kept_in_the_repository_reports_the_same_twice(tmp_path, capsys) -> None:
+    spec_dir = tmp_path / "studies"
+    spec_dir.mkdir()
+    path = _spec(spec_dir, name="kept.yaml", record={"path": "../results/kept.json", "format": "study"})
+    run_study(load_spec(path), tmp_path / "runs", status=False, log=lambda m: None)
+    assert (tmp_path / "results" / "kept.json").is_file()
+    out_dir = tmp_path / "out"
+    for _ in range(2):  # the second call must not read the (run-less) output directory as the study's
+        assert main(["study", "report", str(path), "--out", str(out_dir), "--run-dir", str(out_dir)]) == 0
+        assert "| mfrl | 1 |" in (out_dir / "report.md").read_text()
+    capsys.readouterr()
+
+
+def test_spec_holes_found_in_review_are_closed(tmp_path) -> None:
+    for data, message in (
+        ({"methods": ["mfrl", "mfrl"]}, "names an arm twice"),
+        ({"methods": {"record.json": {"method": "mfrl"}}}, "not a study file's name"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            load_spec(_spec(tmp_path, **data))
+    (tmp_path / "up.yaml").write_text("name: '..'\nsystems: [pendulum]\nmethods: [mfrl]\nseeds: [0]\n")
+    with pytest.raises(ConfigError, match="'name' must be"):
+        load_spec(tmp_path / "up.yaml")
+    (tmp_path / "nan.yaml").write_text("systems: [pendulum]\nmethods: [mfrl]\nseeds: [0]\nthresholds: [.nan]\n")
+    with pytest.raises(ConfigError, match="'thresholds' must be finite numbers"):
+        load_spec(tmp_path / "nan.yaml")
+    (tmp_path / "twice.yaml").write_text("systems: [pendulum]\nmethods: [mfrl]\nseeds: [0]\nseeds: [0, 1, 2]\n")
+    with pytest.raises(ConfigError, match="the key 'seeds' is given twice"):
+        load_spec(tmp_path / "twice.yaml")
+    clash = {"methods": {"mfrl": {"overrides": {"total_steps": 100}}}, "grid": {"total_steps": [200, 300]}}
+    with pytest.raises(ConfigError, match="total_steps is both a grid key and an override of arm mfrl"):
+        plan_study(load_spec(_spec(tmp_path, overrides={"eval_episodes": 1}, **clash)), tmp_path / "root")
+    assert load_spec(_spec(tmp_path, systems=["burgers"], overrides={}, hypotheses={
+        "H": {"claim": "c", "better": "mfrl", "than": "mfrl", "system": "pimbrl/Burgers-v0"}})).hypotheses[0].system  # fmt: skip
+
+
+def test_a_link_inside_the_study_root_is_refused(tmp_path) -> None:
+    spec = load_spec(_spec(tmp_path, methods=["mfrl", "mfrl-matched"]))
+    (tmp_path / "root" / "mfrl-matched").mkdir(parents=True)
+    (tmp_path / "root" / "mfrl").symlink_to(tmp_path / "root" / "mfrl-matched")  # two arms, one directory
+    with pytest.raises(Exception, match="link"):
+        run_study(spec, tmp_path / "root", status=False, log=lambda m: None)
+
+
+def test_registration_refuses_runs_made_before_and_specs_changed_after_their_commit(tmp_path) -> None:
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    _git(repo, "init", "-q")
+    path = _spec(repo, name="c.yaml", kind="confirmatory")
+    _git(repo, "add", "c.yaml")
+    _git(repo, "commit", "-q", "-m", "register")
+    spec = load_spec(path)
+    runs = plan_study(spec, tmp_path / "old")
+    runs[0].path.mkdir(parents=True)
+    (runs[0].path / "config.json").write_text("{}")  # a run made before the registration
+    with pytest.raises(ConfigError, match="already holds a run made before the study was registered"):
+        start_study(spec, tmp_path / "old", runs)
+    _git(repo, "update-index", "--assume-unchanged", "c.yaml")  # git status no longer sees edits
+    path.write_text(path.read_text().replace('"seeds": [0]', '"seeds": [0, 1]'))
+    (tmp_path / "new").mkdir()
+    with pytest.raises(ConfigError, match="is not registered"):
+        start_study(load_spec(path), tmp_path / "new")
+    _git(repo, "update-index", "--no-assume-unchanged", "c.yaml")
+    _git(repo, "commit", "-q", "-am", "look, edit, commit again")  # a second commit of the same spec file
+    with pytest.raises(ConfigError, match="is not registered"):
+        start_study(load_spec(path), tmp_path / "new")
+
+
+def test_the_watchdog_spares_what_the_driver_had_before_it(tmp_path) -> None:
+    pid_file = tmp_path / "before.pid"
+    driver = textwrap.dedent(
+        f"""
+        import subprocess, sys, time
+        before = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], start_new_session=True)
+        open({str(pid_file)!r}, "w").write(str(before.pid))
+        from pimbrl.experiments.watchdog import watch_descendants
+        watch_descendants()
+        time.sleep(300)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", driver])
+    deadline = time.monotonic() + 60
+    while not pid_file.exists() or not pid_file.read_text():
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    before = int(pid_file.read_text())
+    time.sleep(2.0)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    time.sleep(2.0)  # the watchdog has acted by now
+    try:
+        assert _state(before) not in ("gone", "Z"), "the watchdog killed a process the driver had before it"
+    finally:
+        os.kill(before, signal.SIGKILL)

@@ -705,14 +705,14 @@ def build_parser() -> argparse.ArgumentParser:
     sw = sub.add_parser(
         "sweep",
         help="run a grid of trials (envs x methods x seeds x parameters) on Ray, resumable, with one table and figure",
-        description="Run the trials of a sweep file (JSON or TOML) on a local Ray instance (default when Ray is "
-        "installed), on a cluster (--address), or one after another in this process (--no-ray).",
+        description="Run the trials of a sweep file (JSON or TOML), a study of the study engine, on a local Ray instance "
+        "(default when Ray is installed), on a cluster (--address), or as local processes (--no-ray).",
     )
     sw.add_argument("config", help="sweep file (see pimbrl.experiments.sweep)")
     sw.add_argument("--run-dir", required=True)
     sw.add_argument("--address", default=None, help="address of an existing Ray cluster (e.g. ray://host:10001 or auto)")
-    sw.add_argument("--no-ray", action="store_true", help="run the trials one after another in this process")
-    sw.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all)")
+    sw.add_argument("--no-ray", action="store_true", help="run the trials as local processes, --cpus at a time")
+    sw.add_argument("--cpus", type=int, default=None, help="trials at a time: Ray's local CPUs or local processes (default: all)")
     _add_import(sw)
     sw.set_defaults(func=_cmd_sweep)
 

@@ -363,7 +363,10 @@ _YAML_FLOAT = r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
 
 
 def load_yaml(text: str) -> Any:
-    """YAML data (``yaml.safe_load``: no object is constructed) with YAML 1.2's floats (``1e-3`` is a number)."""
+    """YAML data (``yaml.safe_load``: no object is constructed) with YAML 1.2's floats (``1e-3`` is a number).
+
+    A key given twice in one mapping is an error (``yaml.YAMLError``), not the last one silently kept.
+    """
     import re
 
     import yaml
@@ -371,7 +374,20 @@ def load_yaml(text: str) -> Any:
     class _Loader(yaml.SafeLoader):
         pass
 
+    def mapping(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict[Any, Any]:
+        loader.flatten_mapping(node)
+        keys = set()
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=True)
+            if key in keys:  # YAML keeps the last silently: a setting given twice is an error here
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {key!r} is given twice (line {key_node.start_mark.line + 1})", key_node.start_mark
+                )
+            keys.add(key)
+        return loader.construct_mapping(node, deep=True)
+
     _Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(_YAML_FLOAT, re.X), list("-+0123456789."))
+    _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
     return yaml.load(text, Loader=_Loader)
 
 

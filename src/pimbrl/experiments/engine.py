@@ -137,6 +137,8 @@ def plan_study(spec: StudySpec, root: str | Path) -> list[StudyRun]:
                 params = tuple(zip(keys, values))
                 setting = ",".join(f"{k}={v}" for k, v in params) or "default"
                 swept = typed_overrides(dict(params))
+                for key in swept.keys() & arm.overrides.keys():
+                    raise ConfigError(f"study {spec.name}: {key} is both a grid key and an override of arm {arm.name}")
                 own = {**arm.overrides, **swept, "method": arm.method}
                 agent = run_names(env_id, {**spec.overrides, **own}, spec.preset)[1]
                 applied = applicable_overrides(env_id, arm.method, agent, spec.overrides, reasons)
@@ -173,6 +175,8 @@ def study_thresholds(spec: StudySpec, system: str) -> list[float]:
     """The thresholds the report counts steps to on ``system``: the spec's, else the system's recipe's."""
     if spec.thresholds:
         return list(spec.thresholds)
+    if spec.overrides.get("threshold") is not None:  # the runs' own threshold
+        return [float(spec.overrides["threshold"])]
     try:
         threshold = resolve_config(system, {"method": "mfrl"}, preset=spec.preset).threshold
     except (ConfigError, ValueError):
@@ -228,36 +232,38 @@ def run_study(
             f"study {spec.name} reads the record {spec.record.path} made before the study engine; it has no runs to make "
             "(pimbrl study report shows it)"
         )
-    root = Path(root)
+    root = Path(root).resolve()  # absolute: a Ray worker elsewhere (or on another node) writes the same runs
     runs = plan_study(spec, root)  # every configuration checked before anything runs
-    base = root.resolve()
-    for r in runs:  # no link on the way below the root (it would lead the runs elsewhere)
-        check_below(base, r.path.resolve().relative_to(base), "directory")
+    for r in runs:  # no link on the way below the root (it would lead the runs elsewhere): checked unresolved
+        check_below(root, r.path.relative_to(root), "directory")
     failed: list[str] = []
-    if run:
-        root.mkdir(parents=True, exist_ok=True)
-        lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
-        try:
-            start_study(spec, root)
-            if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
-                atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
-            specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
-            check_reuse(specs, rerun=rerun, log=log)
-            todo = [r for r in runs if RunDirectory(r.path).status != "finished"]
-            log(
-                f"study {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} finished, {len(todo)} to run"
-                + (" on Ray" if todo and backend == "ray" else "")
-            )
-            if backend == "ray" and todo:
-                failed = [str(Path(p).relative_to(root)) for p in _run_on_ray(todo, spec.imports, address, jobs, log)]
-            elif todo:
-                by_path = {str(r.path): r for r in todo}
-                bad = run_all(
-                    [s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports
-                )
-                failed = [str(s.path.relative_to(root)) for s in bad]
-        finally:
-            os.close(lock)
+    if not run:
+        return _write_record(spec, runs, root, failed, run=False)
+    root.mkdir(parents=True, exist_ok=True)
+    lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
+    try:
+        specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
+        check_reuse(specs, rerun=rerun, log=log)
+        start_study(spec, root, runs)  # after the checks: a start refused there is no start
+        if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
+            atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
+        todo = [r for r in runs if RunDirectory(r.path).status != "finished"]
+        log(
+            f"study {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} finished, {len(todo)} to run"
+            + (" on Ray" if todo and backend == "ray" else "")
+        )
+        if backend == "ray" and todo:
+            failed = [str(Path(p).relative_to(root)) for p in _run_on_ray(todo, spec.imports, address, jobs, log)]
+        elif todo:
+            by_path = {str(r.path): r for r in todo}
+            bad = run_all([s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports)
+            failed = [str(s.path.relative_to(root)) for s in bad]
+        return _write_record(spec, runs, root, failed, run=True)  # under the lock: no other driver moves a run meanwhile
+    finally:
+        os.close(lock)
+
+
+def _write_record(spec: StudySpec, runs: Sequence[StudyRun], root: Path, failed: list[str], run: bool) -> dict[str, Any]:
     record = collect_record(spec, runs, root)
     record["failed"] = failed
     if run or (root / RECORD_FILE).exists() or record["runs"]:
@@ -290,13 +296,13 @@ def _run_on_ray(
 
     started_here = not ray.is_initialized()
     watchdog = None
-    if started_here:
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            watchdog = watch_descendants()  # Ray's helpers end with this process, also a killed one
-            ray.init(num_cpus=max(1, jobs), include_dashboard=False, log_to_driver=False)
     try:
+        if started_here:
+            if address:
+                ray.init(address=address, log_to_driver=False)
+            else:
+                watchdog = watch_descendants()  # Ray's helpers end with this process, also a killed one
+                ray.init(num_cpus=max(1, jobs), include_dashboard=False, log_to_driver=False)
         remote = ray.remote(num_cpus=1, max_retries=0)(execute_run)
         refs = {remote.remote(str(r.path), r.config, tuple(imports)): r for r in runs}
         failed = []
@@ -316,7 +322,7 @@ def _run_on_ray(
                     failed.append(str(r.path))
         return failed
     finally:
-        if started_here:
+        if started_here and ray.is_initialized():
             ray.shutdown()
         if watchdog is not None:
             watchdog.stop()
@@ -364,11 +370,17 @@ def _run_entry(spec: StudySpec, run: StudyRun, root: Path) -> dict[str, Any] | N
 def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) -> dict[str, Any]:
     """The study's record from its run directories (runs not started yet are listed as missing)."""
     from .registration import read_registration
+    from .runner import config_differences
 
     root = Path(root)
-    entries, missing, unreadable = [], [], []
+    entries, missing, unreadable, mismatched = [], [], [], []
     for run in runs:
         try:
+            recorded = RunDirectory(run.path).read_config().get("config") if (run.path / "config.json").exists() else None
+            diffs = [] if recorded is None else config_differences(recorded, run.config)
+            if diffs:  # a run made with other settings is not this spec's run
+                mismatched.append(f"{run.path}: {', '.join(diffs)}")
+                continue
             entry = _run_entry(spec, run, root)
         except (ValueError, OSError) as exc:  # a damaged run directory: named, the others collected
             unreadable.append(f"{run.path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
@@ -390,4 +402,5 @@ def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) 
         "runs": entries,
         "missing": missing,
         "unreadable": unreadable,
+        "mismatched": mismatched,
     }

@@ -2,11 +2,15 @@
 
 When a study first runs in a directory, :func:`start_study` writes ``ROOT/study.json``: the spec's SHA-256
 and the time of the first start; every later start appends the SHA-256 it ran with when that differs. A
-spec marked ``kind: confirmatory`` must be committed in git, without uncommitted changes, when its first
-run starts (else that start is refused with a one-line error); the commit that last changed it and that
-commit's time are recorded. :func:`study_label` then calls a record confirmatory only where the spec was
-committed before the first run started and never changed afterwards (the record's, the registration's and
-the current spec's SHA-256 all equal); everything else is labelled exploratory, with the reason.
+spec marked ``kind: confirmatory`` must be registered when its first run starts, else that start is
+refused with a one-line error: its bytes are those of a commit (read with ``git show``, whatever the index
+says), the only commit that ever changed the file (a spec edited after it was committed is a new spec, in
+a new file, so that running, looking and re-committing cannot re-register it), and none of its runs exist
+yet. The commit, its time and the SHA-256 of the files the spec imports (a user's system) are recorded.
+:func:`study_label` then calls a record confirmatory only where the spec was committed before the first run
+started and never changed afterwards (the record's, the registration's and the current spec's SHA-256 all
+equal), the imported files are unchanged, and every run is made, finished and of the spec's settings;
+everything else is labelled exploratory, with the reason.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import json
 import subprocess
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +26,7 @@ from ..config import ConfigError
 from ..fileio import atomic_write_bytes, read_below, strict_json
 from .spec import StudySpec
 
-__all__ = ["REGISTRATION_FILE", "committed_spec", "read_registration", "start_study", "study_label"]
+__all__ = ["REGISTRATION_FILE", "committed_spec", "imports_sha256", "read_registration", "start_study", "study_label"]
 
 #: a study directory's registration
 REGISTRATION_FILE = "study.json"
@@ -31,26 +36,46 @@ def _git(directory: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(["git", "-C", str(directory), *args], capture_output=True, text=True, timeout=60, check=False)
 
 
-def committed_spec(path: Path) -> dict[str, Any] | None:
-    """The commit that last changed the spec at ``path`` and its time, if the file is committed and clean.
+def committed_spec(path: Path, sha256: str) -> dict[str, Any] | None:
+    """The commit that registered the spec at ``path``, if the spec is registrable; else ``None``.
 
-    ``None`` where git is missing, the file is outside a repository, untracked, or has uncommitted changes.
+    Registrable: the file is tracked, its bytes (SHA-256 ``sha256``) are those of the commit that last changed
+    it (read with ``git show``, whatever the index says), and that commit is the only one that ever changed it
+    (a spec edited after being committed is a new spec: give it a new file). ``None`` also where git is
+    missing or the file is outside a repository.
     """
+    import hashlib
+
     directory, name = path.parent, path.name
     try:
-        tracked = _git(directory, "ls-files", "--error-unmatch", "--", name)
-        if tracked.returncode != 0:
+        history = _git(directory, "--literal-pathspecs", "log", "--format=%H %ct", "--follow", "--", name)
+        if history.returncode != 0:
             return None
-        dirty = _git(directory, "status", "--porcelain", "--", name)
-        if dirty.returncode != 0 or dirty.stdout.strip():
+        commits = [line.split() for line in history.stdout.splitlines() if line.strip()]
+        if len(commits) != 1 or len(commits[0]) != 2:
             return None
-        last = _git(directory, "log", "-1", "--format=%H %ct", "--", name)
+        commit, when = commits[0]
+        prefix = _git(directory, "rev-parse", "--show-prefix").stdout.strip()
+        blob = subprocess.run(
+            ["git", "-C", str(directory), "show", f"{commit}:{prefix}{name}"], capture_output=True, timeout=60, check=False
+        )
     except (OSError, subprocess.SubprocessError):
         return None
-    parts = last.stdout.split()
-    if last.returncode != 0 or len(parts) != 2:
+    if blob.returncode != 0 or hashlib.sha256(blob.stdout).hexdigest() != sha256:
         return None
-    return {"commit": parts[0], "committed_unix": int(parts[1])}
+    return {"commit": commit, "committed_unix": int(when)}
+
+
+def imports_sha256(spec: StudySpec) -> dict[str, str]:
+    """The SHA-256 of each file the spec imports (a user's system is part of what a study ran)."""
+    import hashlib
+
+    out = {}
+    for item in spec.imports:
+        path = Path(item)
+        if path.suffix == ".py" and path.is_file():
+            out[item] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
 
 
 def read_registration(root: str | Path) -> dict[str, Any] | None:
@@ -63,8 +88,12 @@ def read_registration(root: str | Path) -> dict[str, Any] | None:
     return value if isinstance(value, dict) else None
 
 
-def start_study(spec: StudySpec, root: str | Path) -> dict[str, Any]:
-    """Record this start of ``spec`` in ``root`` (see the module docstring); returns the registration."""
+def start_study(spec: StudySpec, root: str | Path, runs: Sequence[Any] = ()) -> dict[str, Any]:
+    """Record this start of ``spec`` in ``root`` (see the module docstring); returns the registration.
+
+    ``runs``: the study's planned runs (:class:`~pimbrl.experiments.engine.StudyRun`); a confirmatory study's
+    first start refuses a directory where any of them already exists (made before the registration).
+    """
     root = Path(root)
     current = read_registration(root)
     if current is not None and current.get("study") not in (None, spec.name):
@@ -75,13 +104,21 @@ def start_study(spec: StudySpec, root: str | Path) -> dict[str, Any]:
     if current is None:
         current = {"study": spec.name, "kind": spec.kind, "spec_sha256": spec.sha256, "first_run_started_unix": now, "starts": []}
         if spec.kind == "confirmatory":
-            registered = committed_spec(spec.path) if spec.path is not None else None
+            registered = committed_spec(spec.path, spec.sha256) if spec.path is not None else None
             if registered is None:
                 raise ConfigError(
-                    f"confirmatory spec {spec.path or spec.name} is not committed (or has uncommitted changes): commit it "
-                    "before its first run (git add SPEC && git commit), or mark it kind: exploratory"
+                    f"confirmatory spec {spec.path or spec.name} is not registered: commit it, unchanged, in a commit of its "
+                    "own before its first run (git add SPEC && git commit; a spec changed after it was committed is a new "
+                    "spec: give it a new file), or mark it kind: exploratory"
+                )
+            existing = [str(r.path) for r in runs if (Path(r.path) / "config.json").exists()]
+            if existing:
+                raise ConfigError(
+                    f"confirmatory study {spec.name}: {existing[0]} already holds a run made before the study was registered; "
+                    "give the study a new --run-dir"
                 )
             current["registered"] = registered
+            current["imports_sha256"] = imports_sha256(spec)
     starts = current.setdefault("starts", [])
     starts.append({"unix": now, "spec_sha256": spec.sha256})
     seen = current.setdefault("spec_sha256_seen", [])
@@ -104,4 +141,8 @@ def study_label(spec: StudySpec, record: dict[str, Any]) -> tuple[str, str]:
     shas = {reg.get("spec_sha256"), record.get("spec_sha256"), spec.sha256, *reg.get("spec_sha256_seen", [])}
     if len(shas) != 1:
         return "exploratory", "the spec changed after its first run started (its SHA-256 differs from the registered one)"
+    if reg.get("imports_sha256", {}) != imports_sha256(spec):
+        return "exploratory", "a file the spec imports (a system's code) changed after the first run started"
+    if record.get("missing") or record.get("mismatched") or any(not r.get("finished") for r in record.get("runs", [])):
+        return "exploratory", "runs are missing, unfinished or of other settings"
     return "confirmatory", f"registered at commit {registered['commit'][:10]} before the first run; unchanged since"

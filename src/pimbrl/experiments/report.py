@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from . import stats
+from .engine import directory_name
 from .registration import study_label
 from .spec import StudySpec
 
@@ -44,8 +45,10 @@ def load_record(spec: StudySpec, run_dir: str | Path | None = None) -> dict[str,
 
     if spec.record is not None and spec.record.format != "study":
         return import_record(spec)
-    if run_dir is not None and Path(run_dir).is_dir() and any(Path(run_dir).iterdir()):
-        return collect_record(spec, plan_study(spec, run_dir), run_dir)
+    from .registration import REGISTRATION_FILE
+
+    if run_dir is not None and any((Path(run_dir) / f).is_file() for f in (RECORD_FILE, REGISTRATION_FILE)):
+        return collect_record(spec, plan_study(spec, run_dir), run_dir)  # a study's directory: its runs as they stand
     if spec.record is not None:
         from ..fileio import strict_json
 
@@ -115,6 +118,7 @@ def _arm_stats(spec: StudySpec, runs: list[dict[str, Any]], thresholds: Sequence
         out["thresholds"][_key(t)] = {
             "reached": sum(1 for s in steps if s is not None),
             "steps": {r["seed"]: s for r, s in zip(runs, steps)},
+            "budgets": budgets,
             "median": stats.censored_median(steps, budgets),
         }
     return out
@@ -132,15 +136,19 @@ def _compare(spec: StudySpec, a: dict[str, Any], b: dict[str, Any], thresholds: 
     out: dict[str, Any] = {"outcome_poi": poi.as_dict(), "outcome_difference": diff.as_dict(), "thresholds": {}}
     for t in thresholds:
         sa, sb = a["thresholds"][_key(t)], b["thresholds"][_key(t)]
-        p = stats.probability_of_improvement(
-            stats.steps_scores(list(sa["steps"].values())),
-            stats.steps_scores(list(sb["steps"].values())),
-            spec.confidence,
-            spec.reps,
-            seed,
-        )
+        p = _steps_poi(spec, sa, sb, seed)
         out["thresholds"][_key(t)] = {"poi": p.as_dict(), "median_ratio": _median_ratio(sa["median"], sb["median"])}
     return out
+
+
+def _steps_poi(spec: StudySpec, sa: dict[str, Any], sb: dict[str, Any], seed: int) -> stats.Interval:
+    """P(a run of the first arm reaches the threshold sooner); no runs where budgets make the ranking unsound."""
+    a_steps, b_steps = list(sa["steps"].values()), list(sb["steps"].values())
+    if not stats.comparable_steps(a_steps, sa["budgets"], b_steps, sb["budgets"]):
+        return stats.Interval(math.nan, math.nan, math.nan, 0)
+    return stats.probability_of_improvement(
+        stats.steps_scores(a_steps), stats.steps_scores(b_steps), spec.confidence, spec.reps, seed
+    )
 
 
 def _median_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
@@ -160,11 +168,18 @@ def _ratio_text(r: dict[str, Any]) -> str:
     return f"{r['value']:.2f}" if r["bound"] == "=" else f"< {r['value']:.2f}"
 
 
-def _groups(record: dict[str, Any]) -> dict[tuple[str, str], dict[str, list[dict[str, Any]]]]:
+def _groups(record: dict[str, Any], finished: bool = True) -> dict[tuple[str, str], dict[str, list[dict[str, Any]]]]:
+    """The record's runs by (system, setting) and arm: the finished ones (``finished``) or the others."""
     groups: dict[tuple[str, str], dict[str, list[dict[str, Any]]]] = {}
     for run in record["runs"]:
-        groups.setdefault((run["system"], run.get("setting", "default")), {}).setdefault(run["arm"], []).append(run)
+        if bool(run.get("finished")) == finished:
+            groups.setdefault((run["system"], run.get("setting", "default")), {}).setdefault(run["arm"], []).append(run)
     return groups
+
+
+def _cell(text: Any) -> str:
+    """``text`` as one Markdown table cell: ``|`` escaped, line breaks as ``<br>``."""
+    return "<br>".join(line.replace("|", "\\|") for line in str(text).splitlines())
 
 
 def _system_id(name: str) -> str:
@@ -194,6 +209,7 @@ def study_report(
     computed: dict[str, Any] = {"label": label, "why": why, "groups": {}, "hypotheses": {}}
     figures: list[Path] = []
     thresholds_of = record.get("thresholds") or {}
+    unfinished = _groups(record, finished=False)
     for (system, setting), arms in _groups(record).items():
         thresholds = [float(t) for t in (thresholds_of.get(system) or spec.thresholds)]
         order = [a for a in spec.arm_names if a in arms] + [a for a in arms if a not in spec.arm_names]
@@ -201,8 +217,12 @@ def study_report(
         key = f"{system} {setting}"
         computed["groups"][key] = {"arms": group, "comparisons": {}}
         title = _short(system) + ("" if setting == "default" else f", {setting}")
-        lines += [f"### {title}", ""]
+        lines += [f"### {_cell(title)}", ""]
         lines += _arm_table(spec, group, thresholds)
+        left_out = {arm: len(runs) for arm, runs in unfinished.get((system, setting), {}).items()}
+        if left_out:
+            names = ", ".join(f"{_cell(arm)} {n}" for arm, n in left_out.items())
+            lines += ["", f"Unfinished runs, left out of every statistic here: {names}."]
         pairs = [p for p in spec.comparisons if p[0] in group and p[1] in group]
         if pairs:
             lines += ["", _comparison_header(spec, thresholds), _separator(3 + len(thresholds))]
@@ -210,7 +230,7 @@ def study_report(
                 c = _compare(spec, group[a], group[b], thresholds, seed)
                 computed["groups"][key]["comparisons"][f"{a} vs {b}"] = c
                 cells = [
-                    f"{a} vs {b}",
+                    _cell(f"{a} vs {b}"),
                     _interval(c["outcome_poi"]).text("{:.2f}"),
                     _interval(c["outcome_difference"]).text("{:.3g}"),
                 ]
@@ -226,9 +246,14 @@ def study_report(
                 figures.append(figure)
                 rel = _relative(figure, link_base)
                 lines += ["", f"![{spec.name}: {title}]({rel})"]
+            profile = _profile_figure(spec, group, Path(figures_dir), f"{spec.name}_{_short(system)}_{setting}", title)
+            if profile is not None:
+                figures.append(profile)
+                lines += ["", f"![{spec.name}: {title}, performance profile]({_relative(profile, link_base)})"]
         lines.append("")
     if spec.hypotheses:
         lines += ["### Hypotheses", "", "| id | claim | where | measure | probability of improvement | verdict |", _separator(6)]
+        incomplete = bool(record.get("missing")) or bool(unfinished) or bool(record.get("mismatched"))
         for h in spec.hypotheses:
             for (system, setting), arms in _groups(record).items():
                 if h.system is not None and _system_id(h.system) != system:
@@ -237,23 +262,40 @@ def study_report(
                     continue
                 where = _short(system) + ("" if setting == "default" else f" {setting}")
                 g = computed["groups"][f"{system} {setting}"]["arms"]
-                xs: list[float]
-                ys: list[float]
                 if h.metric == "final_return":
                     xs, ys = list(g[h.better]["outcome"].values()), list(g[h.than]["outcome"].values())
+                    poi = stats.probability_of_improvement(xs, ys, spec.confidence, spec.reps, seed)
                     measure = f"{spec.outcome} return"
                 else:
                     t = float(h.threshold)  # type: ignore[arg-type]
-                    xs = stats.steps_scores([steps_to(r, t) for r in arms[h.better]])
-                    ys = stats.steps_scores([steps_to(r, t) for r in arms[h.than]])
+                    if _key(t) in g[h.better]["thresholds"]:
+                        sa, sb = g[h.better]["thresholds"][_key(t)], g[h.than]["thresholds"][_key(t)]
+                    else:  # a threshold of the hypothesis alone
+                        sa, sb = (_arm_stats(spec, arms[arm], [t], seed)["thresholds"][_key(t)] for arm in (h.better, h.than))
+                    poi = _steps_poi(spec, sa, sb, seed)
                     measure = f"real steps to {t:g}"
-                poi = stats.probability_of_improvement(xs, ys, spec.confidence, spec.reps, seed)
-                v = stats.verdict(poi)
+                v = stats.verdict(poi, (g[h.better]["runs"], g[h.than]["runs"]))
+                if incomplete and not v.startswith("inconclusive"):
+                    v = "inconclusive (runs missing or unfinished)"
                 computed["hypotheses"][f"{h.id} {system} {setting}"] = {"poi": poi.as_dict(), "verdict": v}
-                lines.append(f"| {h.id} | {h.claim} | {where} | {measure} | {poi.text('{:.2f}')} | {v} |")
+                cells = [
+                    h.id,
+                    h.claim,
+                    where,  # the runs: (better, than)
+                    measure,
+                    f"{poi.text('{:.2f}')} (runs {g[h.better]['runs']}, {g[h.than]['runs']})",
+                    v,
+                ]
+                lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
         lines.append("")
     if record.get("missing"):
         lines += [f"Runs not made yet: {len(record['missing'])} (the tables hold the runs made).", ""]
+    if record.get("mismatched"):
+        lines += [
+            f"Runs left out because their recorded configuration is not the spec's: {len(record['mismatched'])} "
+            f"({_cell('; '.join(record['mismatched'][:3]))}{' ...' if len(record['mismatched']) > 3 else ''}).",
+            "",
+        ]
     return Report("\n".join(lines).rstrip() + "\n", computed, figures, label)
 
 
@@ -295,12 +337,12 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
 
 
 def _arm_table(spec: StudySpec, group: dict[str, Any], thresholds: Sequence[float]) -> list[str]:
-    head = ["arm", "runs (finished)", f"{spec.outcome} return IQM [CI]", "mean [CI]"]
+    head = ["arm", "finished runs", f"{spec.outcome} return IQM [CI]", "mean [CI]"]
     head += [f"reached {t:g}; median real steps" for t in thresholds]
     head += ["real transitions", "imagined / scheme transitions", "agent updates", "wall (min)"]
     lines = ["| " + " | ".join(head) + " |", _separator(len(head))]
     for arm, s in group.items():
-        cells = [arm, f"{s['runs']} ({s['finished']})", _interval(s["iqm"]).text(), _interval(s["mean"]).text()]
+        cells = [_cell(arm), f"{s['runs']}", _interval(s["iqm"]).text(), _interval(s["mean"]).text()]
         for t in thresholds:
             st = s["thresholds"][_key(t)]
             cells.append(f"{st['reached']}/{s['runs']}; {stats.median_text(st['median'])}")
@@ -354,7 +396,7 @@ def _curves_figure(
         return None
     from ..plotting import plot_learning_curves
 
-    safe = "".join(c if c.isalnum() or c in "-_.,=+" else "_" for c in stem)
+    safe = directory_name(stem)
     return plot_learning_curves(
         curves,
         out / f"{safe}.png",
@@ -362,6 +404,34 @@ def _curves_figure(
         threshold=thresholds[0] if thresholds else None,
         band="line: mean over runs of the mean test return; band: lowest to highest run",
     )
+
+
+def _profile_figure(spec: StudySpec, group: dict[str, Any], out: Path, stem: str, title: str) -> Path | None:
+    """The performance profile of a group's arms: the fraction of runs whose outcome exceeds each return (rliable)."""
+    import numpy as np
+
+    scores = {arm: list(s["outcome"].values()) for arm, s in group.items() if s["outcome"]}
+    if len(scores) < 2:
+        return None
+    every = [v for values in scores.values() for v in values]
+    low, high = min(every), max(every)
+    if not high > low:
+        return None
+    taus = np.linspace(low, high, 60)
+    profiles = stats.performance_profile(scores, taus.tolist())
+    import matplotlib.pyplot as plt
+
+    from ..plotting import save_figure
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for arm, fraction in profiles.items():
+        ax.step(taus, fraction, where="post", label=f"{arm} ({len(scores[arm])} runs)")
+    ax.set_xlabel(f"{spec.outcome} return (tau)")
+    ax.set_ylabel("fraction of runs above tau")
+    ax.set_title(f"{spec.name}: {title}")
+    ax.legend(loc="lower left", fontsize="small")
+    fig.tight_layout()
+    return save_figure(fig, out / f"{directory_name(stem)}_profile.png")
 
 
 def write_pages(
@@ -428,7 +498,7 @@ def write_pages(
         ]
         for spec, r in beside:
             link = f"[{spec.name}](results.md#{_anchor(spec.name, r.label)})"
-            repro.append(f"| {link} | {spec.paper.strip()} | {_summary_line(r)} | {r.label} |")
+            repro.append(f"| {link} | {_cell(spec.paper.strip())} | {_summary_line(r)} | {r.label} |")
         repro.append("")
     repro += ["## Every study", "", "| study | label | command |", "|---|---|---|"]
     for spec, r in reports:
@@ -437,7 +507,7 @@ def write_pages(
         else:
             name = Path(spec.path).name if spec.path else spec.name
             command = f"pimbrl study run benchmarks/studies/{name} --run-dir runs/{spec.name}"
-        repro.append(f"| [{spec.name}](results.md#{_anchor(spec.name, r.label)}) | {r.label} | `{command}` |")
+        repro.append(f"| [{spec.name}](results.md#{_anchor(spec.name, r.label)}) | {r.label} | `{_cell(command)}` |")
     reproduce = docs / "reproduce.md"
     atomic_write_bytes(reproduce, ("\n".join(repro) + "\n").encode())
     return [results, reproduce, *[f for _, r in reports for f in r.figures]]

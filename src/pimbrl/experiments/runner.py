@@ -105,8 +105,8 @@ def lock_comparison(root: Path) -> int:
         finally:
             os.close(fd)
         raise ConfigError(
-            f"{root} is in use by another pimbrl compare ({holder}); wait for it to end, or give another --run-dir "
-            "(two comparisons in one directory would each summarise the other's unfinished runs)"
+            f"{root} is in use by another pimbrl driver ({holder}); wait for it to end, or give another --run-dir "
+            "(two drivers in one directory would each summarise the other's unfinished runs)"
         ) from None
     try:
         os.ftruncate(fd, 0)
@@ -151,8 +151,8 @@ def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[st
         spec, diffs = stale[0]
         more = f" (and {len(stale) - 1} more run(s) of this comparison)" if len(stale) > 1 else ""
         raise ConfigError(
-            f"{spec.path} holds a run made with another configuration: {', '.join(diffs)}{more}; add --rerun to move "
-            "such runs aside and train them again, or choose another --run-dir"
+            f"{spec.path} holds a run made with another configuration: {', '.join(diffs)}{more}; choose another --run-dir, "
+            "or move such runs aside and train them again (pimbrl compare or pimbrl study run: --rerun)"
         )
     for spec, diffs in stale:
         stamp = time.strftime("%Y%m%dT%H%M%S")

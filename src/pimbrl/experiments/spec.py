@@ -37,6 +37,7 @@ naming the file and the key. The spec's identity is the SHA-256 of its bytes (:a
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -219,7 +220,25 @@ def _seeds(value: Any, where: str) -> tuple[int, ...]:
     return tuple(seeds)
 
 
+#: names an arm cannot take: the files a study keeps in its directory
+_RESERVED = {"record.json", "study.json", "study.yaml", "compare.lock", "report.md", "summary.csv", "summary.json"}
+
+
+def _name_ok(name: Any) -> bool:
+    """A name that is one safe path component: no '/', no leading '.', printable, at most 100 characters."""
+    return (
+        isinstance(name, str)
+        and 0 < len(name) <= 100
+        and "/" not in name
+        and "\\" not in name
+        and not name.startswith(".")
+        and name.isprintable()
+    )
+
+
 def _arms(value: Any, where: str) -> tuple[Arm, ...]:
+    if isinstance(value, list) and len(set(map(str, value))) != len(value):
+        raise _fail(where, f"'methods' names an arm twice ({value!r}); give each once")
     if isinstance(value, list):
         value = {name: {} for name in value} if all(isinstance(n, str) for n in value) else value
     if not isinstance(value, dict) or not value:
@@ -227,8 +246,12 @@ def _arms(value: Any, where: str) -> tuple[Arm, ...]:
     arms = []
     known = (*METHODS, MATCHED)
     for name, body in value.items():
-        if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
-            raise _fail(where, f"arm name {name!r} must be a non-empty name without '/' or a leading '.'")
+        if not _name_ok(name) or name in _RESERVED:
+            raise _fail(
+                where,
+                f"arm name {name!r} must be a printable name of at most 100 characters without '/' or a leading '.', "
+                "and not a study file's name",
+            )
         body = {} if body is None else body
         if not isinstance(body, dict):
             raise _fail(where, f"arm {name}: must be a mapping with 'method' (and 'overrides'), got {body!r}")
@@ -290,13 +313,24 @@ def _hypotheses(value: Any, arms: Sequence[str], systems: Sequence[str], where: 
         threshold = body.get("threshold")
         if threshold is not None:
             threshold = typed_value(float, threshold, f"hypothesis {hid}: threshold")
+            if not math.isfinite(threshold):
+                raise _fail(where, f"hypothesis {hid}: threshold must be a finite number, got {threshold}")
         elif metric == "steps_to_threshold":
             raise _fail(where, f"hypothesis {hid}: steps_to_threshold needs a 'threshold'")
         system = body.get("system")
-        if system is not None and system not in systems:
+        if system is not None and system not in systems and _resolved(system) not in {_resolved(s) for s in systems}:
             raise _fail(where, f"hypothesis {hid}: system {system!r} is not one of the spec's systems")
         out.append(Hypothesis(str(hid), body["claim"], body["better"], body["than"], metric, threshold, system))
     return tuple(out)
+
+
+def _resolved(name: str) -> str:
+    from ..simulate import resolve_env_id
+
+    try:
+        return resolve_env_id(name)
+    except ValueError:
+        return name
 
 
 def _record(value: Any, base: Path, where: str) -> RecordSource:
@@ -392,12 +426,14 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         if not isinstance(thresholds, list):
             thresholds = [thresholds]
         thresholds = tuple(typed_value(float, t, "'thresholds'") for t in thresholds)
+        if not all(math.isfinite(t) for t in thresholds):
+            raise ConfigError(f"'thresholds' must be finite numbers, got {list(thresholds)}")
         stats = data.get("statistics") or {}
         if not isinstance(stats, dict) or set(stats) - _STAT_KEYS:
             raise ConfigError(f"'statistics' takes {', '.join(sorted(_STAT_KEYS))}, got {stats!r}")
         confidence = typed_value(float, stats.get("confidence", 0.95), "statistics.confidence")
         reps = typed_value(int, stats.get("reps", 10_000), "statistics.reps")
-        if not 0.5 <= confidence < 1 or not 100 <= reps <= 1_000_000:
+        if not math.isfinite(confidence) or not 0.5 <= confidence < 1 or not 100 <= reps <= 1_000_000:
             raise ConfigError("statistics: confidence must be in [0.5, 1) and reps in [100, 1,000,000]")
     except ConfigError as exc:
         raise _fail(where, str(exc)) from None
@@ -410,8 +446,10 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
     if n_runs > MAX_RUNS:
         raise _fail(where, f"{n_runs:,} runs are more than a study plans ({MAX_RUNS:,} at most); give fewer")
     name = data.get("name", Path(where).stem if where.endswith((".yaml", ".yml")) else "study")
-    if not isinstance(name, str) or not name or "/" in name:
-        raise _fail(where, f"'name' must be a name without '/', got {name!r}")
+    if not _name_ok(name):
+        raise _fail(
+            where, f"'name' must be a printable name of at most 100 characters without '/' or a leading '.', got {name!r}"
+        )
     return StudySpec(
         name=name,
         systems=tuple(systems),

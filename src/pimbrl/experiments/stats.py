@@ -23,8 +23,10 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "MIN_RUNS_FOR_VERDICT",
     "Interval",
     "censored_median",
+    "comparable_steps",
     "iqm",
     "iqm_interval",
     "mean_interval",
@@ -201,17 +203,25 @@ def median_text(median: Mapping[str, float | None]) -> str:
     return text if median.get("at_most") is None else f"{text} and <= {median['at_most']:,.0f}"
 
 
-def verdict(poi: Interval) -> str:
+#: the fewest runs per arm for a verdict other than inconclusive: with fewer, perfectly separated arms give
+#: a bootstrap interval of [1, 1] (every resample separates them too), which is no evidence
+MIN_RUNS_FOR_VERDICT = 5
+
+
+def verdict(poi: Interval, runs: tuple[int, int] | None = None) -> str:
     """A hypothesis "better beats than" judged on the probability of improvement's interval.
 
-    ``supported`` where the whole interval lies above 0.5, ``not supported`` where it lies at or below 0.5,
-    ``inconclusive`` where it contains 0.5 (or there are no runs).
+    ``supported`` where the whole interval lies above 0.5, ``not supported`` where it lies below 0.5,
+    ``inconclusive`` where it contains 0.5, where there are no runs, or where either arm has fewer than
+    :data:`MIN_RUNS_FOR_VERDICT` runs (``runs``: the two arms' numbers of runs).
     """
     if poi.n == 0 or not math.isfinite(poi.low):
-        return "inconclusive (no runs)"
+        return "inconclusive (no comparable runs)"
+    if runs is not None and min(runs) < MIN_RUNS_FOR_VERDICT:
+        return f"inconclusive (fewer than {MIN_RUNS_FOR_VERDICT} runs per arm)"
     if poi.low > 0.5:
         return "supported"
-    if poi.high <= 0.5:
+    if poi.high < 0.5:
         return "not supported"
     return "inconclusive"
 
@@ -223,5 +233,27 @@ def performance_profile(scores: Mapping[str, Sequence[float]], taus: Sequence[fl
     arrays = {k: np.asarray(v, dtype=float).reshape(-1, 1) for k, v in scores.items() if len(v)}
     if not arrays:
         return {}
-    profiles, _ = library.create_performance_profile(arrays, np.asarray(taus, dtype=float), reps=100)
+    saved = np.random.get_state()  # its bootstrap (of intervals not used here) draws from the global generator
+    np.random.seed(0)
+    try:
+        profiles, _ = library.create_performance_profile(arrays, np.asarray(taus, dtype=float), reps=100)
+    finally:
+        np.random.set_state(saved)
     return {k: [float(x) for x in v] for k, v in profiles.items()}
+
+
+def comparable_steps(
+    steps_a: Sequence[int | None], budgets_a: Sequence[int], steps_b: Sequence[int | None], budgets_b: Sequence[int]
+) -> bool:
+    """Whether ranking two arms' runs by their steps to a threshold is sound.
+
+    It is where every censored run's budget reaches past every measured step of the other arm (else a run
+    stopped early would rank below one that reached the threshold later).
+    """
+    reached_a = [s for s in steps_a if s is not None]
+    reached_b = [s for s in steps_b if s is not None]
+    for steps, budgets, other in ((steps_a, budgets_a, reached_b), (steps_b, budgets_b, reached_a)):
+        for s, b in zip(steps, budgets):
+            if s is None and other and b < max(other):
+                return False
+    return True
