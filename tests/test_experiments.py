@@ -8,6 +8,7 @@ import json
 import pytest
 
 from pimbrl.cli import main
+from pimbrl.config import ConfigError
 from pimbrl.experiments.sweep import load_sweep, run_sweep
 from pimbrl.training.config import get_setting
 
@@ -55,15 +56,22 @@ def test_sweep_in_process_and_on_ray_give_the_same_table(tmp_path, capsys) -> No
     assert _results(tmp_path / "ray") == ray
 
 
-def test_a_failed_trial_is_reported_and_the_others_go_on(tmp_path) -> None:
+def test_an_unreadable_trial_stops_the_sweep_before_it_starts(tmp_path) -> None:
     spec = load_sweep(_sweep_file(tmp_path))
     root = tmp_path / "sweep"
     broken = root / "Pendulum-v0" / "mfrl" / "agent.gamma=0.9" / "seed0"
     broken.mkdir(parents=True)
     (broken / "config.json").write_text("{ not json")
+    # a sweep is a study: a run directory it cannot read stops it before any run starts, naming the run
+    with pytest.raises(
+        ConfigError,
+        match=r"agent\.gamma=0\.9/seed0 holds a run made with another configuration: the recorded configuration \(unreadable\)",
+    ):
+        run_sweep(spec, root, use_ray=False, log=lambda m: None)
+    assert not (root / "Pendulum-v0" / "mfrl" / "agent.gamma=0.99").exists()
+    (broken / "config.json").unlink()  # the damaged run removed, the sweep runs every trial
     result = run_sweep(spec, root, use_ray=False, log=lambda m: None)
-    assert result["failed"] == [str(broken.resolve())]
-    assert [r["setting"] for r in result["rows"]] == ["agent.gamma=0.99"]
+    assert len(result["rows"]) == 2 and not result["failed"]
 
 
 def test_bad_sweep_files_get_clear_errors(tmp_path, capsys) -> None:

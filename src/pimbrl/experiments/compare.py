@@ -296,21 +296,26 @@ def ratio_lines(ratios: dict[str, dict[str, Any]], missing: str = "-") -> list[s
 
 def write_outputs(result: dict[str, Any], root: Path, env_id: str) -> None:
     """``summary.csv``, ``summary.json`` and ``curves.png`` in ``root``."""
-    lines = ["method,seed,steps_to_threshold,wall_s_to_threshold,final_return,best_return,wall_s,updates,update_to_data"]
+    # no best_return: a maximum over test evaluations is never a result
+    lines = ["method,seed,steps_to_threshold,wall_s_to_threshold,final_return,wall_s,updates,update_to_data"]
     for r in result["runs"]:
         s2t = "" if r["steps_to_threshold"] is None else r["steps_to_threshold"]
         w2t = "" if r.get("wall_s_to_threshold") is None else f"{r['wall_s_to_threshold']:.1f}"
         lines.append(
-            f"{r['method']},{r['seed']},{s2t},{w2t},{r['final_return']!r},{r['best_return']!r},{r['wall_s']:.1f},"
+            f"{r['method']},{r['seed']},{s2t},{w2t},{r['final_return']!r},{r['wall_s']:.1f},"
             f"{r['updates']},{r['update_to_data']:.3f}"
         )
     for label, m in result["methods"].items():
         s2t = m["steps_to_threshold_mean"]
         if s2t is None:  # some runs never reached it: a lower bound, written as ">=N"
             s2t = f">={m['steps_to_threshold_lower_bound']:.0f}" if m["reached"] else ""
-        lines.append(f"{label},mean,{s2t},,{m['final_return_mean']!r},,{m['wall_s_mean']:.1f},,{m['update_to_data']:.3f}")
+        lines.append(f"{label},mean,{s2t},,{m['final_return_mean']!r},{m['wall_s_mean']:.1f},,{m['update_to_data']:.3f}")
     atomic_write_bytes(root / "summary.csv", ("\n".join(lines) + "\n").encode())
-    slim = {**result, "runs": [{k: v for k, v in r.items() if k != "curve"} for r in result["runs"]], "env": env_id}
+    slim = {
+        **result,
+        "runs": [{k: v for k, v in r.items() if k not in ("curve", "best_return")} for r in result["runs"]],
+        "env": env_id,
+    }
     atomic_write_bytes(root / "summary.json", (json.dumps(slim, indent=2, allow_nan=False) + "\n").encode())
     plot_method_curves(result, root / "curves.png", env_id)
 

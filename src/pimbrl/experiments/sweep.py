@@ -336,7 +336,6 @@ def write_sweep_outputs(result: dict[str, Any], root: Path, title: str) -> None:
         "steps",
         "steps_to_threshold",
         "final_return",
-        "best_return",
         "wall_s",
         "updates",
     ]

@@ -90,7 +90,7 @@ DEVICES = ("cpu", "cuda", "auto")
 
 @dataclass(frozen=True)
 class Experimental:
-    """Knobs kept for reproducing recorded runs, measured as no help (docs/results.md); off by default."""
+    """Knobs kept for reproducing recorded runs, measured as no help (docs/journal/); off by default."""
 
     lr_decay_after: int | None = param(
         None,
