@@ -198,9 +198,7 @@ def test_sweep_overrides_go_to_the_trials_they_fit_grid_keys_to_all(tmp_path) ->
     assert by_method["pimbrl"].method.fit.steps == 5 and by_method["mfrl"].method == MFRL()
     with pytest.raises(ConfigError, match="is a setting of --method mbrl, pimbrl, identified-scheme, hybrid, pihybrid, not mfrl"):
         plan_trials(load_sweep(_sweep(tmp_path, overrides={"fit.steps": 5})), tmp_path / "out")
-    with pytest.raises(
-        ConfigError, match=r"pimbrl/Pendulum-v0 mfrl imagine\.rollout_length=3: --imagine\.rollout-length"
-    ):
+    with pytest.raises(ConfigError, match=r"pimbrl/Pendulum-v0 mfrl imagine\.rollout_length=3: --imagine\.rollout-length"):
         plan_trials(
             load_sweep(_sweep(tmp_path, methods=["pimbrl", "mfrl"], grid={"imagine.rollout_length": [3]})), tmp_path / "o"
         )

@@ -455,7 +455,7 @@ def test_a_sweep_plans_each_distinct_run_once_and_inside_its_root(tmp_path) -> N
         {"grid": {"env_kwargs": [{"g": 9.0, "m": 1.0}, {"m": 1, "g": 9}]}},  # the same mapping, written twice
     )
     for duplicate in duplicates:
-        with pytest.raises(ConfigError, match="is the same run as|seed 0 is given twice"):
+        with pytest.raises(ConfigError, match=r"is the same run as|seed 0 is given twice"):
             plan(**duplicate)
     (escape,) = plan(grid={"env_kwargs": [{"observation": "x/../../../y"}]})  # a value that reads as a path
     assert (tmp_path / "root").resolve() in Path(escape.path).resolve().parents and ".." not in Path(escape.path).parts
