@@ -419,6 +419,9 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         )
         return 2
     print(f"wrote {Path(args.run_dir) / 'curves.png'}, summary.csv and summary.json")
+    if not args.no_run:
+        spec_file = Path(args.run_dir) / "study.yaml"
+        print(f"tables with intervals: pimbrl study report {spec_file} (the comparison's spec; its record: record.json)")
     return 0
 
 
