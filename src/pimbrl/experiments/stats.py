@@ -103,28 +103,27 @@ def iqm(values: Sequence[float]) -> float:
     return float(metrics.aggregate_iqm(np.asarray(values, dtype=float).reshape(-1, 1)))
 
 
+def _over_runs(values: Sequence[float], func: Callable[[np.ndarray], float], confidence: float, reps: int, seed: int) -> Interval:
+    """``func`` over the runs' ``values`` with its bootstrap interval (a point without width for one run)."""
+    values = [float(v) for v in values]
+    if not values:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    if len(values) == 1:
+        return Interval(values[0], values[0], values[0], 1)
+    value, low, high = _estimate([np.array(values)], func, confidence, reps, seed)
+    return Interval(value, low, high, len(values))
+
+
 def iqm_interval(values: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0) -> Interval:
     """The IQM over runs with its stratified-bootstrap interval (a point without width for one run)."""
     from rliable import metrics
 
-    values = [float(v) for v in values]
-    if not values:
-        return Interval(math.nan, math.nan, math.nan, 0)
-    if len(values) == 1:
-        return Interval(values[0], values[0], values[0], 1)
-    value, low, high = _estimate([np.array(values)], lambda s: float(metrics.aggregate_iqm(s)), confidence, reps, seed)
-    return Interval(value, low, high, len(values))
+    return _over_runs(values, lambda s: float(metrics.aggregate_iqm(s)), confidence, reps, seed)
 
 
 def mean_interval(values: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0) -> Interval:
     """The mean over runs with its bootstrap interval."""
-    values = [float(v) for v in values]
-    if not values:
-        return Interval(math.nan, math.nan, math.nan, 0)
-    if len(values) == 1:
-        return Interval(values[0], values[0], values[0], 1)
-    value, low, high = _estimate([np.array(values)], lambda s: float(np.mean(s)), confidence, reps, seed)
-    return Interval(value, low, high, len(values))
+    return _over_runs(values, lambda s: float(np.mean(s)), confidence, reps, seed)
 
 
 def probability_of_improvement(
