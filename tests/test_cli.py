@@ -28,6 +28,20 @@ def test_simulate_constant_burgers_matches_the_documented_return(capsys, tmp_pat
     assert -21.5 < ret < -19.5
 
 
+def test_proportional_feedback_is_a_floor_above_no_control_on_the_pdes(capsys, tmp_path) -> None:
+    """a_i = -gain x the observation under actuator i: no learning, no model, and far above zero control."""
+
+    def ret(*args: str) -> float:
+        assert main(["simulate", *args, "--out", str(tmp_path / "f.png")]) == 0
+        return float(capsys.readouterr().out.split("return=")[1].split()[0])
+
+    assert ret("burgers", "--policy", "feedback", "--gain", "1") > ret("burgers", "--policy", "zero") + 20  # -8.7 vs -39.8
+    assert ret("ks", "--policy", "feedback", "--gain", "3") > ret("ks", "--policy", "zero") + 50  # -140 vs -241
+    assert ret("burgers", "--policy", "feedback", "--gain", "0") == ret("burgers", "--policy", "zero")
+    assert main(["simulate", "cartpole", "--policy", "feedback", "--out", str(tmp_path / "c.png")]) == 2
+    assert "--policy feedback is for PDE systems with localised actuators" in capsys.readouterr().err
+
+
 def test_bad_input_gives_a_clear_error(capsys, tmp_path) -> None:
     assert main(["simulate", "navier-stokes", "--out", str(tmp_path / "x.png")]) == 2
     assert "unknown environment 'navier-stokes'" in capsys.readouterr().err

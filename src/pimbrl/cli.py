@@ -58,7 +58,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     from . import plotting
     from .envs import PhysicsEnv
-    from .simulate import make_simple_policy, resolve_env_id, run_episode
+    from .simulate import make_simple_policy, proportional_feedback, resolve_env_id, run_episode
 
     env_id = resolve_env_id(args.env)
     kwargs = {}
@@ -71,13 +71,17 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             raise
         raise ValueError(f"--initial-states applies to systems with initial-state pools (KS), not {env_id}") from None
     value = None if args.value is None else [float(v) for v in args.value.split(",")]
-    policy = make_simple_policy(env.action_space, args.policy, np.random.default_rng(args.seed), value)
+    if args.policy == "feedback":
+        policy = proportional_feedback(env, args.gain)
+    else:
+        policy = make_simple_policy(env.action_space, args.policy, np.random.default_rng(args.seed), value)
     record = run_episode(env, policy, seed=args.seed)
     out = Path(args.out) if args.out else Path("out") / f"{env_id.split('/')[-1]}_{args.policy}_seed{args.seed}.png"
     base = env.unwrapped
     x = getattr(base.physics, "x", None) if isinstance(base, PhysicsEnv) and base.physics.state_dim > 4 else None
     plotting.plot_episode(record, out, x=x)
-    print(f"{env_id}  policy={args.policy}  seed={args.seed}  steps={record.length}  return={record.total_return:.4f}")
+    what = f"{args.policy} (gain {args.gain:g})" if args.policy == "feedback" else args.policy
+    print(f"{env_id}  policy={what}  seed={args.seed}  steps={record.length}  return={record.total_return:.4f}")
     print(f"figure: {out}")
     return 0
 
@@ -555,8 +559,14 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "env", help="ks | burgers | cartpole | pendulum, a system's alias or id (see --import), or a registered Gymnasium id"
     )
-    sim.add_argument("--policy", choices=["zero", "random", "constant"], default="zero")
+    sim.add_argument("--policy", choices=["zero", "random", "constant", "feedback"], default="zero")
     sim.add_argument("--value", help="for --policy constant: one number, or comma-separated per action component")
+    sim.add_argument(
+        "--gain",
+        type=float,
+        default=1.0,
+        help="for --policy feedback (PDEs): a_i = -gain x the observation averaged under actuator i",
+    )
     sim.add_argument("--seed", type=int, default=0, help="seeds the initial state and the random policy")
     sim.add_argument("--steps", type=int, default=None, help="episode length (default: the env's time limit)")
     sim.add_argument(
