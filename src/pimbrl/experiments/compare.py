@@ -40,10 +40,10 @@ from typing import Any
 
 import numpy as np
 
-from ..config import MAX_SEED, ConfigError
+from ..config import ConfigError
 from ..fileio import atomic_write_bytes, check_below
 from ..training.cli_args import parse_train_args
-from ..training.config import did_you_mean, resolve_config, typed_overrides
+from ..training.config import resolve_config, typed_overrides
 from ..training.methods import METHODS
 from ..training.rundir import RunDirectory
 from .engine import env_directory, plan_study, run_study
@@ -58,7 +58,7 @@ from .runner import (
     lock_comparison,
     run_all,
 )
-from .spec import StudySpec, parse_spec, spec_to_yaml
+from .spec import MATCHED, MAX_SEEDS, StudySpec, parse_spec, spec_to_yaml
 from .stats import censored_median
 
 __all__ = [
@@ -81,9 +81,7 @@ __all__ = [
     "summarize_runs",
 ]
 
-COMPARE_METHODS = (*METHODS, "mfrl-matched")
-#: the most seeds one comparison runs (planning more would take minutes before the first error)
-MAX_SEEDS = 10_000
+COMPARE_METHODS = (*METHODS, MATCHED)
 
 
 def _as_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dict[str, Any]:
@@ -106,37 +104,19 @@ def compare_spec(
 ) -> StudySpec:
     """The study spec a comparison is: one system, the methods as arms, the seeds, the shared overrides.
 
-    Its text (``DIR/study.yaml``) is what `pimbrl study run` and `pimbrl study report` read.
+    Its text (``DIR/study.yaml``) is what `pimbrl study run` and `pimbrl study report` read. The seeds and
+    methods are checked as every spec's are (:func:`~pimbrl.experiments.spec.parse_spec`).
     """
     overrides = _as_overrides(overrides)
     for key in ("method", "seed"):
         if key in overrides:
             raise ConfigError(f"compare sets {key} itself (--methods, --seeds); it cannot be overridden")
-    if not seeds:
-        raise ValueError("a comparison needs at least one seed")
-    bad = [s for s in seeds if isinstance(s, bool) or not isinstance(s, int)]
-    if bad:
-        raise ConfigError(f"seed must be an integer, got {bad[0]!r}")
-    if len(seeds) > MAX_SEEDS:
-        raise ValueError(f"{len(seeds):,} seeds are more than a comparison runs ({MAX_SEEDS:,} at most); give fewer")
-    seen: set[int] = set()
-    for s in seeds:  # each seed is one run directory: a repeated seed would be one run counted as two seeds
-        if s in seen:
-            raise ValueError(f"seed {s} is given twice in the seeds; give each seed once")
-        if not 0 <= s <= MAX_SEED:
-            raise ConfigError(f"seed must be in [0, {MAX_SEED:,}], got {s}")
-        seen.add(s)
-    for label in methods:
-        if label not in COMPARE_METHODS:
-            raise ValueError(
-                f"unknown method {label!r}{did_you_mean(label, COMPARE_METHODS)}: choose from {', '.join(COMPARE_METHODS)}"
-            )
     others = [m for m in methods if m != "pimbrl"]
     data: dict[str, Any] = {
         "name": f"compare-{env_directory(env_id)}",
         "question": f"{', '.join(methods)} on {env_id} (written by pimbrl compare)",
         "systems": [env_id],
-        "seeds": list(seeds),
+        "seeds": list(seeds),  # each seed once, each an integer in range: checked by the spec's parser
         "methods": list(dict.fromkeys(methods)),
         "layout": "compact",
         "comparisons": [["pimbrl", m] for m in others] if "pimbrl" in methods else [],

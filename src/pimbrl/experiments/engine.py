@@ -31,7 +31,7 @@ from ..fileio import atomic_write_bytes, check_below
 from ..training.config import TrainConfig, applicable_overrides, config_to_dict, resolve_config, run_names, typed_overrides
 from ..training.rundir import RunDirectory, cpu_model, provenance, source_commit
 from .runner import RunSpec, check_reuse, lock_comparison, run_all
-from .spec import StudySpec
+from .spec import StudySpec, safe_component
 
 __all__ = [
     "RECORD_FILE",
@@ -54,8 +54,6 @@ RECORD_FILE = "record.json"
 SPEC_FILE = "study.yaml"
 #: the record's format tag (changes when its meaning does)
 RECORD_FORMAT = "pimbrl-study-record/1"
-#: the longest setting directory name kept as written (file systems allow 255 bytes)
-_MAX_NAME = 100
 
 
 @dataclass(frozen=True)
@@ -84,13 +82,12 @@ class StudyRun:
 def directory_name(setting: str) -> str:
     """A setting's directory name: one path component inside the study's root, whatever its values hold.
 
-    The setting as written where that is a safe component (no ``/``, no leading ``.``, printable, at most
-    100 characters); otherwise characters other than letters, digits and ``_ . , = + -`` become ``_``, the
+    The setting as written where that is a safe component (:func:`~pimbrl.experiments.spec.safe_component`);
+    otherwise characters other than letters, digits and ``_ . , = + -`` become ``_``, the
     name is cut to 80 characters, and the first 8 hex digits of the setting's SHA-256 are appended (two
     settings never share a directory).
     """
-    safe = "/" not in setting and "\\" not in setting and not setting.startswith(".") and setting.isprintable()
-    if safe and 0 < len(setting.encode()) <= _MAX_NAME:
+    if safe_component(setting):
         return setting
     name = "".join(c if c.isalnum() or c in "_.,=+-" else "_" for c in setting)[:80].lstrip(".")
     return f"{name or 'setting'}-{hashlib.sha256(setting.encode()).hexdigest()[:8]}"
@@ -328,16 +325,13 @@ def _run_on_ray(
             watchdog.stop()
 
 
-def _run_entry(spec: StudySpec, run: StudyRun, root: Path) -> dict[str, Any] | None:
-    run_dir = RunDirectory(run.path)
-    result = run_dir.result(None)
+def _run_entry(run: StudyRun, root: Path, payload: dict[str, Any]) -> dict[str, Any] | None:
+    """The record's entry of one run (``payload``: its config.json, read once); ``None`` before its first evaluation."""
+    result = RunDirectory(run.path).result(None)
     if result is None:
         return None
-    payload = run_dir.read_config()
     summary = payload.get("summary") or {}
     curve = result.pop("curve")
-    rows = run_dir.evaluations.read()
-    curve["wall_s"] = [float(r["wall_s"]) for r in rows]
     try:
         relative = str(run.path.resolve().relative_to(root.resolve()))
     except ValueError:
@@ -376,12 +370,12 @@ def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) 
     entries, missing, unreadable, mismatched = [], [], [], []
     for run in runs:
         try:
-            recorded = RunDirectory(run.path).read_config().get("config") if (run.path / "config.json").exists() else None
-            diffs = [] if recorded is None else config_differences(recorded, run.config)
+            payload = RunDirectory(run.path).read_config() if (run.path / "config.json").exists() else None
+            diffs = [] if payload is None else config_differences(payload.get("config"), run.config)
             if diffs:  # a run made with other settings is not this spec's run
                 mismatched.append(f"{run.path}: {', '.join(diffs)}")
                 continue
-            entry = _run_entry(spec, run, root)
+            entry = None if payload is None else _run_entry(run, root, payload)
         except (ValueError, OSError) as exc:  # a damaged run directory: named, the others collected
             unreadable.append(f"{run.path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
             continue

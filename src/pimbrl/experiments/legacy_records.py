@@ -50,6 +50,7 @@ from typing import Any
 from ..config import ConfigError
 from ..fileio import strict_json
 from .spec import StudySpec
+from .stats import threshold_key
 
 __all__ = ["FORMATS", "KNOWN_SCHEME", "PARTIAL_METHODS", "import_record"]
 
@@ -103,10 +104,6 @@ def _num(value: Any, name: str, *, optional: bool = False) -> Any:
     return value
 
 
-def _key(threshold: float) -> str:
-    return f"{float(threshold):g}"
-
-
 def _run(
     r: Mapping[str, Any], *, seed: Any, steps: Any, final: Any, steps_to: Mapping[float, Any], **extra: Any
 ) -> dict[str, Any]:
@@ -125,7 +122,7 @@ def _run(
         "scheme_transitions": None,
         "provenance": None,
         "curve": None,
-        "steps_to": {_key(t): _num(s, f"steps to {t:g}", optional=True) for t, s in steps_to.items()},
+        "steps_to": {threshold_key(t): _num(s, f"steps to {t:g}", optional=True) for t, s in steps_to.items()},
     }
     run.update(extra)
     return run
@@ -182,7 +179,7 @@ def _partial(data: Mapping[str, Any], select: Mapping[str, Any], name: str) -> t
                 "step": [int(s) for s in steps],
                 "return_mean": [float(_num(after[s], "returns_after_warmup")) for s in steps],
             }
-        steps_to = {t: r[f"steps_to_{_key(t)}"] for t in thresholds}
+        steps_to = {t: r[f"steps_to_{threshold_key(t)}"] for t in thresholds}
         run = _run(
             r, seed=r["seed"], steps=r["steps"], final=r["final_return"], steps_to=steps_to, system=data["env"], curve=curve
         )
@@ -372,7 +369,7 @@ def import_record(spec: StudySpec) -> dict[str, Any]:
     wanted = [float(t) for t in spec.thresholds] or thresholds
     for r in runs:
         for t in wanted:
-            if _key(t) not in r["steps_to"]:
+            if threshold_key(t) not in r["steps_to"]:
                 recorded = _listed(thresholds)
                 raise ConfigError(
                     f"{path}: threshold {t:g}: the record holds no steps to it for the {r['label']!r} runs; recorded: {recorded}"

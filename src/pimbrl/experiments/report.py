@@ -21,7 +21,8 @@ from typing import Any
 from . import stats
 from .engine import directory_name
 from .registration import study_label
-from .spec import StudySpec
+from .spec import StudySpec, system_id
+from .stats import threshold_key
 
 __all__ = ["Report", "load_record", "steps_to", "study_report", "write_pages"]
 
@@ -66,8 +67,8 @@ def load_record(spec: StudySpec, run_dir: str | Path | None = None) -> dict[str,
 def steps_to(run: dict[str, Any], threshold: float) -> int | None:
     """The real steps a run needed to first reach ``threshold`` (``None``: not within its steps)."""
     recorded = run.get("steps_to")
-    if recorded is not None and _key(threshold) in recorded:
-        return recorded[_key(threshold)]
+    if recorded is not None and threshold_key(threshold) in recorded:
+        return recorded[threshold_key(threshold)]
     curve = run.get("curve")
     if not curve:
         return None
@@ -75,10 +76,6 @@ def steps_to(run: dict[str, Any], threshold: float) -> int | None:
         if value >= threshold:
             return int(step)
     return None
-
-
-def _key(threshold: float) -> str:
-    return f"{float(threshold):g}"
 
 
 def _outcome(spec: StudySpec, run: dict[str, Any]) -> float:
@@ -115,7 +112,7 @@ def _arm_stats(spec: StudySpec, runs: list[dict[str, Any]], thresholds: Sequence
     for t in thresholds:
         steps = [steps_to(r, t) for r in runs]
         budgets = [int(r.get("steps") or 0) for r in runs]
-        out["thresholds"][_key(t)] = {
+        out["thresholds"][threshold_key(t)] = {
             "reached": sum(1 for s in steps if s is not None),
             "steps": {r["seed"]: s for r, s in zip(runs, steps)},
             "budgets": budgets,
@@ -135,9 +132,9 @@ def _compare(spec: StudySpec, a: dict[str, Any], b: dict[str, Any], thresholds: 
     diff = stats.paired_difference(a["outcome"], b["outcome"], spec.confidence, spec.reps, seed)
     out: dict[str, Any] = {"outcome_poi": poi.as_dict(), "outcome_difference": diff.as_dict(), "thresholds": {}}
     for t in thresholds:
-        sa, sb = a["thresholds"][_key(t)], b["thresholds"][_key(t)]
+        sa, sb = a["thresholds"][threshold_key(t)], b["thresholds"][threshold_key(t)]
         p = _steps_poi(spec, sa, sb, seed)
-        out["thresholds"][_key(t)] = {"poi": p.as_dict(), "median_ratio": _median_ratio(sa["median"], sb["median"])}
+        out["thresholds"][threshold_key(t)] = {"poi": p.as_dict(), "median_ratio": _median_ratio(sa["median"], sb["median"])}
     return out
 
 
@@ -180,16 +177,6 @@ def _groups(record: dict[str, Any], finished: bool = True) -> dict[tuple[str, st
 def _cell(text: Any) -> str:
     """``text`` as one Markdown table cell: ``|`` escaped, line breaks as ``<br>``."""
     return "<br>".join(line.replace("|", "\\|") for line in str(text).splitlines())
-
-
-def _system_id(name: str) -> str:
-    """The environment id of a system named in a spec (the name itself where it is not registered here)."""
-    from ..simulate import resolve_env_id
-
-    try:
-        return resolve_env_id(name)
-    except ValueError:
-        return name
 
 
 def _short(system: str) -> str:
@@ -235,7 +222,7 @@ def study_report(
                     _interval(c["outcome_difference"]).text("{:.3g}"),
                 ]
                 for t in thresholds:
-                    ct = c["thresholds"][_key(t)]
+                    ct = c["thresholds"][threshold_key(t)]
                     cells.append(f"{_interval(ct['poi']).text('{:.2f}')}; medians {_ratio_text(ct['median_ratio'])}")
                 lines.append("| " + " | ".join(cells) + " |")
         if figures_dir is not None:
@@ -256,7 +243,7 @@ def study_report(
         incomplete = bool(record.get("missing")) or bool(unfinished) or bool(record.get("mismatched"))
         for h in spec.hypotheses:
             for (system, setting), arms in _groups(record).items():
-                if h.system is not None and _system_id(h.system) != system:
+                if h.system is not None and system_id(h.system) != system:
                     continue
                 if h.better not in arms or h.than not in arms:
                     continue
@@ -268,10 +255,11 @@ def study_report(
                     measure = f"{spec.outcome} return"
                 else:
                     t = float(h.threshold)  # type: ignore[arg-type]
-                    if _key(t) in g[h.better]["thresholds"]:
-                        sa, sb = g[h.better]["thresholds"][_key(t)], g[h.than]["thresholds"][_key(t)]
+                    key = threshold_key(t)
+                    if key in g[h.better]["thresholds"]:
+                        sa, sb = g[h.better]["thresholds"][key], g[h.than]["thresholds"][key]
                     else:  # a threshold of the hypothesis alone
-                        sa, sb = (_arm_stats(spec, arms[arm], [t], seed)["thresholds"][_key(t)] for arm in (h.better, h.than))
+                        sa, sb = (_arm_stats(spec, arms[arm], [t], seed)["thresholds"][key] for arm in (h.better, h.than))
                     poi = _steps_poi(spec, sa, sb, seed)
                     measure = f"real steps to {t:g}"
                 v = stats.verdict(poi, (g[h.better]["runs"], g[h.than]["runs"]))
@@ -344,7 +332,7 @@ def _arm_table(spec: StudySpec, group: dict[str, Any], thresholds: Sequence[floa
     for arm, s in group.items():
         cells = [_cell(arm), f"{s['runs']}", _interval(s["iqm"]).text(), _interval(s["mean"]).text()]
         for t in thresholds:
-            st = s["thresholds"][_key(t)]
+            st = s["thresholds"][threshold_key(t)]
             cells.append(f"{st['reached']}/{s['runs']}; {stats.median_text(st['median'])}")
         model = f"{_count(s['imagined_transitions'])} / {_count(s['scheme_transitions'])}"
         cells += [_count(s["real_transitions"]), model, _count(s["updates"]), _count(s["wall_s"], 60, 1)]
@@ -532,8 +520,3 @@ def _summary_line(report: Report) -> str:
 def _anchor(name: str, label: str) -> str:
     text = f"{name} ({label})".lower()
     return "".join(c for c in text.replace(" ", "-") if c.isalnum() or c in "-_")
-
-
-def finite(value: Any) -> bool:
-    """Whether ``value`` is a finite number."""
-    return isinstance(value, (int, float)) and math.isfinite(value)

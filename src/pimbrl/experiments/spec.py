@@ -60,7 +60,9 @@ __all__ = [
     "StudySpec",
     "load_spec",
     "parse_spec",
+    "safe_component",
     "spec_to_yaml",
+    "system_id",
 ]
 
 #: what a study is: confirmatory only through the registration mechanics, everything else exploratory
@@ -201,6 +203,15 @@ def _fail(where: str, message: str) -> ConfigError:
     return ConfigError(f"{where}: {message}")
 
 
+def _known_keys(body: dict[Any, Any], allowed: set[str], where: str, what: str) -> None:
+    """An unknown key of ``body`` (a part of the spec, named by ``what``) is an error naming it and the allowed ones."""
+    unknown = sorted(map(str, set(body) - allowed))
+    if unknown:
+        raise _fail(
+            where, f"{what}unknown key {unknown[0]!r}{did_you_mean(unknown[0], allowed)}; allowed: {', '.join(sorted(allowed))}"
+        )
+
+
 def _seeds(value: Any, where: str) -> tuple[int, ...]:
     if isinstance(value, int) and not isinstance(value, bool):
         if not 1 <= value <= MAX_SEEDS:
@@ -224,11 +235,11 @@ def _seeds(value: Any, where: str) -> tuple[int, ...]:
 _RESERVED = {"record.json", "study.json", "study.yaml", "compare.lock", "report.md", "summary.csv", "summary.json"}
 
 
-def _name_ok(name: Any) -> bool:
-    """A name that is one safe path component: no '/', no leading '.', printable, at most 100 characters."""
+def safe_component(name: Any) -> bool:
+    """Whether ``name`` is one safe path component: no slash or backslash, no leading '.', printable, 1 to 100 bytes."""
     return (
         isinstance(name, str)
-        and 0 < len(name) <= 100
+        and 0 < len(name.encode()) <= 100
         and "/" not in name
         and "\\" not in name
         and not name.startswith(".")
@@ -246,18 +257,16 @@ def _arms(value: Any, where: str) -> tuple[Arm, ...]:
     arms = []
     known = (*METHODS, MATCHED)
     for name, body in value.items():
-        if not _name_ok(name) or name in _RESERVED:
+        if not safe_component(name) or name in _RESERVED:
             raise _fail(
                 where,
-                f"arm name {name!r} must be a printable name of at most 100 characters without '/' or a leading '.', "
+                f"arm name {name!r} must be a printable name of at most 100 bytes without '/' or a leading '.', "
                 "and not a study file's name",
             )
         body = {} if body is None else body
         if not isinstance(body, dict):
             raise _fail(where, f"arm {name}: must be a mapping with 'method' (and 'overrides'), got {body!r}")
-        unknown = sorted(set(body) - _ARM_KEYS)
-        if unknown:
-            raise _fail(where, f"arm {name}: unknown key {unknown[0]!r}{did_you_mean(unknown[0], _ARM_KEYS)}")
+        _known_keys(body, _ARM_KEYS, where, f"arm {name}: ")
         method = body.get("method", name)
         if method not in known:
             raise _fail(
@@ -298,9 +307,7 @@ def _hypotheses(value: Any, arms: Sequence[str], systems: Sequence[str], where: 
     for hid, body in value.items():
         if not isinstance(body, dict):
             raise _fail(where, f"hypothesis {hid}: must be a mapping, got {body!r}")
-        unknown = sorted(set(body) - _HYPOTHESIS_KEYS)
-        if unknown:
-            raise _fail(where, f"hypothesis {hid}: unknown key {unknown[0]!r}{did_you_mean(unknown[0], _HYPOTHESIS_KEYS)}")
+        _known_keys(body, _HYPOTHESIS_KEYS, where, f"hypothesis {hid}: ")
         for key in ("claim", "better", "than"):
             if not isinstance(body.get(key), str) or not body[key]:
                 raise _fail(where, f"hypothesis {hid}: '{key}' is missing (a claim and the two arms it compares)")
@@ -318,13 +325,14 @@ def _hypotheses(value: Any, arms: Sequence[str], systems: Sequence[str], where: 
         elif metric == "steps_to_threshold":
             raise _fail(where, f"hypothesis {hid}: steps_to_threshold needs a 'threshold'")
         system = body.get("system")
-        if system is not None and system not in systems and _resolved(system) not in {_resolved(s) for s in systems}:
+        if system is not None and system not in systems and system_id(system) not in {system_id(s) for s in systems}:
             raise _fail(where, f"hypothesis {hid}: system {system!r} is not one of the spec's systems")
         out.append(Hypothesis(str(hid), body["claim"], body["better"], body["than"], metric, threshold, system))
     return tuple(out)
 
 
-def _resolved(name: str) -> str:
+def system_id(name: str) -> str:
+    """The environment id of a system named in a spec (the name itself where it is not registered here)."""
     from ..simulate import resolve_env_id
 
     try:
@@ -336,9 +344,7 @@ def _resolved(name: str) -> str:
 def _record(value: Any, base: Path, where: str) -> RecordSource:
     if not isinstance(value, dict) or "path" not in value or "format" not in value:
         raise _fail(where, f"'record' must be a mapping with 'path' and 'format', got {value!r}")
-    unknown = sorted(set(value) - _RECORD_KEYS)
-    if unknown:
-        raise _fail(where, f"'record': unknown key {unknown[0]!r}{did_you_mean(unknown[0], _RECORD_KEYS)}")
+    _known_keys(value, _RECORD_KEYS, where, "'record': ")
     if value["format"] not in RECORD_FORMATS:
         raise _fail(where, f"'record': format must be one of {', '.join(RECORD_FORMATS)}, got {value['format']!r}")
     relabel = value.get("relabel") or {}
@@ -361,9 +367,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
 
     if not isinstance(data, dict):
         raise _fail(where, f"a study spec is a mapping of keys, got {type(data).__name__}")
-    unknown = sorted(set(data) - _KEYS)
-    if unknown:
-        raise _fail(where, f"unknown key {unknown[0]!r}{did_you_mean(unknown[0], _KEYS)}; allowed: {', '.join(sorted(_KEYS))}")
+    _known_keys(data, _KEYS, where, "")
     for key in ("systems", "methods", "seeds"):
         if key not in data:
             raise _fail(where, f"'{key}' is missing")
@@ -442,14 +446,12 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         raise _fail(where, f"'layout' must be auto, compact or full, got {layout!r}")
     if layout == "compact" and (len(systems) > 1 or grid):
         raise _fail(where, "'layout: compact' is for one system without a grid")
-    n_runs = len(systems) * len(arms) * len(seeds) * max(1, _product(len(v) for v in grid.values()))
+    n_runs = len(systems) * len(arms) * len(seeds) * math.prod(len(v) for v in grid.values())
     if n_runs > MAX_RUNS:
         raise _fail(where, f"{n_runs:,} runs are more than a study plans ({MAX_RUNS:,} at most); give fewer")
     name = data.get("name", Path(where).stem if where.endswith((".yaml", ".yml")) else "study")
-    if not _name_ok(name):
-        raise _fail(
-            where, f"'name' must be a printable name of at most 100 characters without '/' or a leading '.', got {name!r}"
-        )
+    if not safe_component(name):
+        raise _fail(where, f"'name' must be a printable name of at most 100 bytes without '/' or a leading '.', got {name!r}")
     return StudySpec(
         name=name,
         systems=tuple(systems),
@@ -474,13 +476,6 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         sha256=hashlib.sha256(text.encode()).hexdigest() if text else "",
         text=text,
     )
-
-
-def _product(values: Any) -> int:
-    out = 1
-    for v in values:
-        out *= v
-    return out
 
 
 def load_spec(path: str | Path) -> StudySpec:

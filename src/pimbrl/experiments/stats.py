@@ -34,6 +34,7 @@ __all__ = [
     "performance_profile",
     "probability_of_improvement",
     "steps_scores",
+    "threshold_key",
     "verdict",
 ]
 
@@ -56,6 +57,11 @@ class Interval:
     def as_dict(self) -> dict[str, Any]:
         """The interval as plain data (for records)."""
         return {"value": self.value, "low": self.low, "high": self.high, "n": self.n}
+
+
+def threshold_key(threshold: float) -> str:
+    """The key of a threshold in records and reports (``-11.0`` -> ``"-11"``)."""
+    return f"{float(threshold):g}"
 
 
 def _state(seed: int) -> np.random.RandomState:

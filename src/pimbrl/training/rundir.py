@@ -754,7 +754,7 @@ class RunDirectory:
             "wall_s": float(summary.get("wall_s", rows[-1]["wall_s"])),
             "updates": updates,
             "update_to_data": updates / max(steps, 1),
-            "curve": {k: [float(r[k]) for r in rows] for k in ("step", "return_mean", "return_min", "return_max")},
+            "curve": {k: [float(r[k]) for r in rows] for k in ("step", "return_mean", "return_min", "return_max", "wall_s")},
         }
 
     def update_status(self, **fields: Any) -> None:
