@@ -2,12 +2,13 @@
 
 Layering, top to bottom (a module may import its own group and the groups below it, never above)::
 
-    cli -> experiments -> training -> agents | models -> simulate, pimbrl/__init__ -> systems -> envs
+    cli -> experiments -> training -> control -> agents | models -> simulate, pimbrl/__init__ -> systems -> envs
         -> plotting -> physics -> buffers, spaces, config, fileio
 
 ``agents`` and ``models`` are independent: neither imports the other. ``simulate`` and ``plotting`` are
 utilities: ``simulate`` runs an environment, ``plotting`` draws arrays and may use nothing above
-``physics``. The root package ``pimbrl/__init__.py`` registers the environments and holds ``__version__``.
+``physics``. ``control`` (feedback, MPC, DPC) drives the models' differentiable schemes and the systems'
+declarations. The root package ``pimbrl/__init__.py`` registers the environments and holds ``__version__``.
 
 Every ``import`` and ``from ... import`` counts, at module level and inside functions, absolute and
 relative, except those under ``if TYPE_CHECKING:``: they never run, so they can neither form an import
@@ -40,6 +41,8 @@ RANKS: dict[str, float] = {
     "simulate": 4,
     "agents": 5,
     "models": 5,
+    # control that knows the physics: runs the systems' equations through the models' schemes
+    "control": 5.5,
     "training": 6,
     "experiments": 7,
     "cli": 8,

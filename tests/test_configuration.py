@@ -56,10 +56,13 @@ def test_a_setting_a_method_or_agent_does_not_have_cannot_be_written() -> None:
         DDPGConfig(target_noise=0.1)  # type: ignore[call-arg]
     assert TD3Config().policy_delay == 2 and not hasattr(DDPGConfig(), "policy_delay")
     # the methods are named for what runs: the known scheme is not PiMBRL
-    assert METHODS == ("mfrl", "mbrl", "pimbrl", "known-scheme", "identified-scheme", "hybrid", "pihybrid")
+    assert METHODS == (
+        "mfrl", "mbrl", "pimbrl", "known-scheme", "identified-scheme", "hybrid", "pihybrid", "feedback", "mpc", "dpc"
+    )  # fmt: skip
     kinds = {name: cls().model_kind for name, cls in METHOD_TYPES.items()}
     assert kinds == {"mfrl": None, "mbrl": "auto", "pimbrl": "auto", "known-scheme": "physics",
-                     "identified-scheme": "physics", "hybrid": "hybrid", "pihybrid": "hybrid"}  # fmt: skip
+                     "identified-scheme": "physics", "hybrid": "hybrid", "pihybrid": "hybrid",
+                     "feedback": None, "mpc": None, "dpc": None}  # fmt: skip
     assert not hasattr(MBRL(), "physics") and hasattr(PiMBRL(), "physics") and hasattr(PiHybrid(), "learn")
     assert not hasattr(Hybrid(), "physics") and hasattr(IdentifiedScheme(), "learn")
 
@@ -126,7 +129,7 @@ def test_train_help_shows_at_most_25_options_and_help_all_shows_every_setting(ca
     every = _options(full)
     assert {"--physics.weight", "--imagine.rollout-length", "--agent.gamma", "--model.prior", "--learn.coefficients",
             "--experimental.lr-decay-after", "--fit.steps", "--check.threshold", "--finetune.at-return"} <= every  # fmt: skip
-    assert "[methods pimbrl, pihybrid]" in full and "[agent sac]" in full
+    assert "[methods pimbrl, pihybrid]" in full and "[agent sac, crossq, redq]" in full
     assert "preset/default" not in full and "where the recipe sets none" in full
 
 

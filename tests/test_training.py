@@ -166,7 +166,7 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch) -> None:
         (["--eval-every", "0"], "eval_every must be > 0, got 0"),
         (
             ["--method", "magic"],
-            "method must be one of mfrl, mbrl, pimbrl, known-scheme, identified-scheme, hybrid, pihybrid, got 'magic'",
+            "method must be one of mfrl, mbrl, pimbrl, known-scheme, identified-scheme, hybrid, pihybrid, feedback, mpc, dpc, got 'magic'",
         ),
         (["--agent.exploration-noise", "-0.1"], "agent.exploration_noise must be in [0.0, 1.0], got -0.1"),
         (["--env-kwargs", "{bad json"], "--env-kwargs must be a JSON object"),

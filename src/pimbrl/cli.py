@@ -58,7 +58,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     from . import plotting
     from .envs import PhysicsEnv
-    from .simulate import make_simple_policy, proportional_feedback, resolve_env_id, run_episode
+    from .simulate import make_simple_policy, resolve_env_id, run_episode
 
     env_id = resolve_env_id(args.env)
     kwargs = {}
@@ -72,7 +72,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--initial-states applies to systems with initial-state pools (KS), not {env_id}") from None
     value = None if args.value is None else [float(v) for v in args.value.split(",")]
     if args.policy == "feedback":
-        policy = proportional_feedback(env, args.gain)
+        policy = _feedback_policy(env_id, env, args.gain)
     else:
         policy = make_simple_policy(env.action_space, args.policy, np.random.default_rng(args.seed), value)
     record = run_episode(env, policy, seed=args.seed)
@@ -84,6 +84,20 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{env_id}  policy={what}  seed={args.seed}  steps={record.length}  return={record.total_return:.4f}")
     print(f"figure: {out}")
     return 0
+
+
+def _feedback_policy(env_id: str, env: Any, gain: float) -> Any:
+    """The system's feedback floor at ``gain`` as a policy of one env (it reads the physical state)."""
+    import numpy as np
+
+    from .control.base import env_actions, task_of
+    from .control.feedback import declared_feedback, make_feedback
+
+    task = task_of(env_id, {})
+    kind, options, _ = declared_feedback(env_id, task.physics)
+    controller = make_feedback(task, kind, gain, options)
+    base = env.unwrapped
+    return lambda obs: env_actions(task, controller(base.state[None], np.array([base.elapsed_steps])))[0]
 
 
 def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
@@ -565,7 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--gain",
         type=float,
         default=1.0,
-        help="for --policy feedback (PDEs): a_i = -gain x the observation averaged under actuator i",
+        help="for --policy feedback: the gain of the system's feedback floor (PDEs: a_i = -gain x the observation "
+        "averaged under actuator i; an LQR: its action cost; the pendulum: its energy pumping)",
     )
     sim.add_argument("--seed", type=int, default=0, help="seeds the initial state and the random policy")
     sim.add_argument("--steps", type=int, default=None, help="episode length (default: the env's time limit)")

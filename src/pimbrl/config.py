@@ -22,6 +22,7 @@ from typing import Any
 
 __all__ = [
     "BROAD_SOURCES",
+    "FEEDBACK_KINDS",
     "LOOP_SOURCES",
     "MAX_BATCH",
     "MAX_LR",
@@ -55,6 +56,8 @@ MODEL_KINDS = ("convlstm", "equivariant", "mlp", *PHYSICS_MODEL_KINDS)
 LOOP_SOURCES = ("policy", "imagined")
 BROAD_SOURCES = ("symmetry", "scaled", "noise", "box")
 PHYSICS_SOURCES = LOOP_SOURCES + BROAD_SOURCES
+#: the feedback floors a system may declare (:mod:`pimbrl.control.feedback`)
+FEEDBACK_KINDS = ("proportional", "lqr", "energy-lqr")
 
 #: Upper bounds of the sizes and counts of the configurations (docs/training.md, section 'Bounds'): far
 #: beyond any run this CPU library can make, low enough that a typo gives a message instead of an

@@ -12,7 +12,7 @@ import numpy as np
 from .envs import PhysicsEnv
 from .systems import resolve_env_id
 
-__all__ = ["EpisodeRecord", "make_simple_policy", "proportional_feedback", "resolve_env_id", "run_episode"]
+__all__ = ["EpisodeRecord", "make_simple_policy", "resolve_env_id", "run_episode"]
 
 Policy = Callable[[np.ndarray], Any]
 
@@ -65,35 +65,6 @@ def make_simple_policy(space: gym.Space, kind: str, rng: np.random.Generator, va
             const = np.broadcast_to(np.asarray(value, dtype=space.dtype), space.shape).copy()
         return lambda obs: const
     raise ValueError(f"unknown policy {kind!r}: use zero, random or constant")
-
-
-def proportional_feedback(env: gym.Env, gain: float) -> Policy:
-    """Proportional feedback for a PDE system with localised actuators: ``a_i = -gain * <obs>_i``, clipped.
-
-    ``<obs>_i`` is the observation averaged under actuator ``i``'s shape (weights ``shape_i / sum(shape_i)``):
-    for Burgers the local tracking error ``u - ref``, for KS the local ``u``. The actions are clipped to the
-    action space. A floor that needs no learning and no model: any method should beat it.
-    """
-    if not np.isfinite(gain):
-        raise ValueError(f"--gain must be a finite number, got {gain}")
-    physics = getattr(env.unwrapped, "physics", None)
-    shapes = getattr(physics, "actuator_shapes", None)
-    space = env.action_space
-    if shapes is None or not isinstance(space, gym.spaces.Box):
-        raise ValueError(
-            f"--policy feedback is for PDE systems with localised actuators (ks, burgers, a declared 1-D PDE), not "
-            f"{env.spec.id if env.spec is not None else type(env.unwrapped).__name__}"
-        )
-    weights = np.asarray(shapes, dtype=np.float64)
-    weights = weights / weights.sum(axis=1, keepdims=True)
-    obs_dim = int(np.prod(env.observation_space.shape or (0,)))
-    if weights.shape[1] != obs_dim:
-        raise ValueError(
-            f"--policy feedback averages the observation under each actuator: the actuators cover {weights.shape[1]} "
-            f"points, the observation has {obs_dim}"
-        )
-    low, high = space.low, space.high
-    return lambda obs: np.clip(-gain * (weights @ np.asarray(obs, dtype=np.float64).reshape(-1)), low, high).astype(space.dtype)
 
 
 def _sample(space: gym.Space, rng: np.random.Generator) -> Any:

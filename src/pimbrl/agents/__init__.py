@@ -1,4 +1,4 @@
-"""Off-policy actor-critic agents: TD3 (the paper's), DDPG and SAC. They see batches, not environments.
+"""Off-policy actor-critic agents: TD3 (the paper's), DDPG, SAC, CrossQ and REDQ. They see batches, not environments.
 
 The hyperparameters (:class:`AgentConfig`, in :mod:`.config`) import without torch; the agents
 themselves are imported on first use, so that building the command line stays fast.
@@ -8,10 +8,21 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from .config import AGENT_NAMES, AGENT_TYPES, AgentConfig, DDPGConfig, SACConfig, TD3Config
+from .config import (
+    AGENT_NAMES,
+    AGENT_TYPES,
+    AgentConfig,
+    CrossQConfig,
+    DDPGConfig,
+    REDQConfig,
+    SACConfig,
+    TD3Config,
+)
 
 if TYPE_CHECKING:
     from .base import Agent
+    from .crossq import CrossQ
+    from .redq import REDQ
     from .sac import SAC
     from .td3 import DDPG, TD3
 
@@ -20,18 +31,22 @@ __all__ = [
     "AGENT_NAMES",
     "AGENT_TYPES",
     "DDPG",
+    "REDQ",
     "SAC",
     "TD3",
     "Agent",
     "AgentConfig",
+    "CrossQ",
+    "CrossQConfig",
     "DDPGConfig",
+    "REDQConfig",
     "SACConfig",
     "TD3Config",
     "make_agent",
 ]
 
 #: names imported on first access (they import torch)
-_LAZY = {"Agent": "base", "SAC": "sac", "TD3": "td3", "DDPG": "td3"}
+_LAZY = {"Agent": "base", "SAC": "sac", "TD3": "td3", "DDPG": "td3", "CrossQ": "crossq", "REDQ": "redq"}
 
 
 def __getattr__(name: str) -> Any:
@@ -45,11 +60,13 @@ def __getattr__(name: str) -> Any:
 
 
 def _agents() -> dict[str, type[Agent]]:
-    """``{"td3": TD3, "ddpg": DDPG, "sac": SAC}`` (the classes of :data:`AGENT_NAMES`)."""
+    """``{"td3": TD3, "ddpg": DDPG, "sac": SAC, "crossq": CrossQ, "redq": REDQ}`` (the classes of :data:`AGENT_NAMES`)."""
+    from .crossq import CrossQ
+    from .redq import REDQ
     from .sac import SAC
     from .td3 import DDPG, TD3
 
-    return {"td3": TD3, "ddpg": DDPG, "sac": SAC}
+    return {"td3": TD3, "ddpg": DDPG, "sac": SAC, "crossq": CrossQ, "redq": REDQ}
 
 
 def make_agent(

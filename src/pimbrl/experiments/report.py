@@ -93,6 +93,11 @@ def _count(value: float | None, scale: float = 1.0, digits: int = 0) -> str:
     return "—" if value is None else f"{value / scale:,.{digits}f}"
 
 
+def _milliseconds(seconds: float | None) -> str:
+    """A duration in milliseconds with three significant digits (``—`` where unknown)."""
+    return "—" if seconds is None else f"{seconds * 1e3:.3g}"
+
+
 def _arm_stats(spec: StudySpec, runs: list[dict[str, Any]], thresholds: Sequence[float], seed: int) -> dict[str, Any]:
     outcomes = [_outcome(spec, r) for r in runs]
     out: dict[str, Any] = {
@@ -105,6 +110,8 @@ def _arm_stats(spec: StudySpec, runs: list[dict[str, Any]], thresholds: Sequence
         "real_transitions": _mean([r.get("real_transitions", r.get("steps")) for r in runs]),
         "imagined_transitions": _mean([r.get("imagined_transitions") for r in runs]),
         "scheme_transitions": _mean([r.get("scheme_transitions") for r in runs]),
+        "validation_transitions": _mean([r.get("validation_transitions") for r in runs]),
+        "inference_s_per_step": _mean([r.get("inference_s_per_step") for r in runs]),
         "updates": _mean([r.get("updates") for r in runs]),
         "wall_s": _mean([r.get("wall_s") for r in runs]),
         "thresholds": {},
@@ -328,6 +335,10 @@ def _arm_table(spec: StudySpec, group: dict[str, Any], thresholds: Sequence[floa
     head = ["arm", "finished runs", f"{spec.outcome} return IQM [CI]", "mean [CI]"]
     head += [f"reached {t:g}; median real steps" for t in thresholds]
     head += ["real transitions", "imagined / scheme transitions", "agent updates", "wall (min)"]
+    # what acting costs and what tuning read, where the record has it (records made since control methods)
+    costs = any(s.get("inference_s_per_step") is not None for s in group.values())
+    if costs:
+        head += ["validation transitions", "inference (ms per control step)"]
     lines = ["| " + " | ".join(head) + " |", _separator(len(head))]
     for arm, s in group.items():
         cells = [_cell(arm), f"{s['runs']}", _interval(s["iqm"]).text(), _interval(s["mean"]).text()]
@@ -336,6 +347,8 @@ def _arm_table(spec: StudySpec, group: dict[str, Any], thresholds: Sequence[floa
             cells.append(f"{st['reached']}/{s['runs']}; {stats.median_text(st['median'])}")
         model = f"{_count(s['imagined_transitions'])} / {_count(s['scheme_transitions'])}"
         cells += [_count(s["real_transitions"]), model, _count(s["updates"]), _count(s["wall_s"], 60, 1)]
+        if costs:
+            cells += [_count(s.get("validation_transitions")), _milliseconds(s.get("inference_s_per_step"))]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 

@@ -252,6 +252,9 @@ class Physics(ABC):
     #: :class:`~pimbrl.physics.pde.SemilinearPDE`): what the convolutional models, the ETDRK4 coarse step and
     #: the field sources of the physics loss need. Models choose their path by this, not by a class.
     is_field: bool = False
+    #: the reward varies smoothly with states and actions, so that a controller can optimise it by gradient
+    #: (MPC, DPC); Cart-Pole's (+1 per step until the pole falls) does not
+    differentiable_reward: bool = True
     #: the equation is invariant under circular shifts of a periodic grid (PDEs on a periodic domain)
     shift_symmetric: bool = False
     #: the equation is invariant under the reflection ``u(x) -> -u(-x)`` (odd-symmetric PDEs: Burgers, KS)

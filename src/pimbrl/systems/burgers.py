@@ -312,4 +312,5 @@ SYSTEM = System(
     preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=large_states,
     model_eval={"transitions": 1_200, "steps": 3_000},
+    feedback="proportional",
 )

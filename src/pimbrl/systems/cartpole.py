@@ -70,6 +70,7 @@ class CartPole(Physics):
     name = "cartpole"
     coefficients = ("gravity", "masscart", "masspole", "length", "cart_friction", "pole_friction")
     tensor_coefficients = True
+    differentiable_reward = False  # +1 per step until the episode ends: nothing for a gradient to climb
 
     @records_arguments
     def __init__(
@@ -302,4 +303,6 @@ SYSTEM = System(
     preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=wide_states,
     model_eval={"transitions": 1_000, "steps": 3_000},
+    feedback="lqr",  # around the upright pole, its force pushed to its side
+    feedback_options={"q": (1.0, 1.0, 10.0, 1.0)},
 )

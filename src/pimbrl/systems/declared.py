@@ -381,6 +381,9 @@ def declare(
     preset: Mapping[str, Any] | str | Path | None = None,
     out_of_sample: Callable[[Task, np.random.Generator, int], np.ndarray] | None = None,
     model_eval: Mapping[str, Any] | None = None,
+    feedback: str | None = None,
+    feedback_gains: tuple[float, ...] = (),
+    feedback_options: Mapping[str, Any] | None = None,
 ) -> System:
     """Build the environments of a declared system and register it; returns its :class:`System`.
 
@@ -392,6 +395,10 @@ def declare(
             same structure as a mapping; without one, a run says so when it starts.
         out_of_sample: initial states outside the training distribution for ``pimbrl model-eval``.
         model_eval: settings of ``pimbrl model-eval``.
+        feedback: its feedback floor (``pimbrl train --method feedback``): ``proportional``, ``lqr`` or
+            ``energy-lqr``; ``None``: proportional for a PDE with actuator shapes, an LQR around the origin else.
+        feedback_gains: the gains that floor tries on the validation draws (empty: its kind's default grid).
+        feedback_options: the controller's further arguments (an LQR's target ``state``, ``action``, ``q``).
     """
     if not (isinstance(physics_class, type) and issubclass(physics_class, (ODESystem, PeriodicPDESystem))):
         raise SystemSpecError(f"declare() takes a subclass of ODESystem or PeriodicPDESystem, got {physics_class!r}")
@@ -399,7 +406,17 @@ def declare(
     task = type(
         f"{physics_class.__name__}Task", (DeclaredTask,), {"physics_class": physics_class, "__module__": physics_class.__module__}
     )
-    return register_task(task, id, aliases=aliases, preset=preset, out_of_sample=out_of_sample, model_eval=model_eval)
+    return register_task(
+        task,
+        id,
+        aliases=aliases,
+        preset=preset,
+        out_of_sample=out_of_sample,
+        model_eval=model_eval,
+        feedback=feedback,
+        feedback_gains=feedback_gains,
+        feedback_options=feedback_options,
+    )
 
 
 def register_task(
@@ -410,6 +427,9 @@ def register_task(
     preset: Mapping[str, Any] | str | Path | None = None,
     out_of_sample: Callable[..., np.ndarray] | None = None,
     model_eval: Mapping[str, Any] | None = None,
+    feedback: str | None = None,
+    feedback_gains: tuple[float, ...] = (),
+    feedback_options: Mapping[str, Any] | None = None,
 ) -> System:
     """Build the single and vector environments of a declared system's task and register the system.
 
@@ -430,6 +450,9 @@ def register_task(
         preset=preset if isinstance(preset, (str, Path)) else dict(preset or {}),
         out_of_sample=out_of_sample,
         model_eval=dict(model_eval or {}),
+        feedback=feedback,
+        feedback_gains=tuple(feedback_gains),
+        feedback_options=dict(feedback_options or {}),
     )
     try:
         system.recipes()  # a preset that cannot be read is an error here, at import, in one line

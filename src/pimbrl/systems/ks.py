@@ -775,4 +775,5 @@ SYSTEM = System(
     preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=forced_states,
     model_eval={"transitions": 6_000, "steps": 3_000},
+    feedback="proportional",
 )

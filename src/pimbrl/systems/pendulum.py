@@ -277,4 +277,5 @@ SYSTEM = System(
     preset=Path(__file__).with_suffix(".yaml"),  # default, paper (and best where one is recorded)
     out_of_sample=fast_states,
     model_eval={"transitions": 2_000, "steps": 3_000},
+    feedback="energy-lqr",  # energy pumping, then the LQR of the reward's weights near the top
 )

@@ -19,6 +19,7 @@ import hashlib
 import importlib
 import importlib.metadata
 import importlib.util
+import math
 import re
 import sys
 import warnings
@@ -29,6 +30,8 @@ from types import MappingProxyType
 from typing import Any
 
 import gymnasium as gym
+
+from ..config import FEEDBACK_KINDS
 
 __all__ = [
     "BUILTIN",
@@ -88,6 +91,11 @@ class System:
         model_eval: settings of ``pimbrl model-eval`` for this system (fields of ``ModelEvalConfig``).
         label: a short name for progress lines (default: the id's name without namespace and version).
         origin: where the declaration came from (``pimbrl``, ``--import FILE``, ``entry point NAME``).
+        feedback: its feedback floor (``pimbrl train --method feedback``): ``proportional``, ``lqr`` or
+            ``energy-lqr`` (:mod:`pimbrl.control.feedback`); ``None``: proportional for a PDE with actuator
+            shapes, an LQR around the origin otherwise.
+        feedback_gains: the gains tried on the validation draws (empty: the kind's default grid).
+        feedback_options: the controller's further arguments (an LQR's target ``state``, ``action`` and ``q``).
     """
 
     id: str
@@ -100,6 +108,9 @@ class System:
     model_eval: Mapping[str, Any] = field(default_factory=dict)
     label: str | None = None
     origin: str = "pimbrl"
+    feedback: str | None = None
+    feedback_gains: tuple[float, ...] = ()
+    feedback_options: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or not _ID.match(self.id):
@@ -116,6 +127,13 @@ class System:
             raise SystemSpecError(f"{self.id}: model_eval must be a mapping of settings")
         if not callable(self.env):
             raise SystemSpecError(f"{self.id}: env must be an environment class (or a callable that makes the env)")
+        if self.feedback is not None and self.feedback not in FEEDBACK_KINDS:
+            raise SystemSpecError(f"{self.id}: feedback must be one of {', '.join(FEEDBACK_KINDS)}, got {self.feedback!r}")
+        gains = self.feedback_gains
+        if isinstance(gains, (str, bytes)) or not all(
+            isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g >= 0 for g in gains
+        ):
+            raise SystemSpecError(f"{self.id}: feedback_gains must be a tuple of finite numbers >= 0, got {gains!r}")
 
     def recipes(self) -> tuple[str, dict[str, Any]]:
         """The default recipe's name and the recipes of :attr:`preset` (``("", {})`` without one)."""

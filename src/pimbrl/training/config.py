@@ -52,7 +52,21 @@ from .envinfo import (
     task_class,
 )
 from .legacy import is_legacy, new_from_legacy, renamed_message
-from .methods import METHOD_TYPES, METHODS, MFRL, SECTIONS, CoefficientFit, DynaMethod, Method, methods_with, pde_only
+from .methods import (
+    CONTROL_METHODS,
+    CONTROL_TYPES,
+    METHOD_TYPES,
+    METHODS,
+    MFRL,
+    SECTIONS,
+    CoefficientFit,
+    ControlMethod,
+    DynaMethod,
+    Feedback,
+    Method,
+    methods_with,
+    pde_only,
+)
 
 __all__ = [
     "DEVICES",
@@ -151,14 +165,26 @@ class TrainConfig:
 
     @property
     def model_based(self) -> bool:
-        """Whether the method has a model (every method but MFRL)."""
-        return not isinstance(self.method, MFRL)
+        """Whether the method is a Dyna method with a model (every RL method but MFRL)."""
+        return not isinstance(self.method, (MFRL, *CONTROL_TYPES))
+
+    @property
+    def control(self) -> bool:
+        """Whether the method is a controller of :mod:`pimbrl.control` (feedback, mpc, dpc): no agent is trained."""
+        return isinstance(self.method, CONTROL_TYPES)
 
     @property
     def dyna(self) -> DynaMethod:
-        """The method, which has a model (a :class:`ValueError` for MFRL)."""
-        if isinstance(self.method, MFRL):
-            raise ValueError("an mfrl run has no model")
+        """The method, which has a model (a :class:`ValueError` for MFRL and the controllers)."""
+        if isinstance(self.method, (MFRL, *CONTROL_TYPES)):
+            raise ValueError(f"a {self.method.name} run has no Dyna model")
+        return self.method
+
+    @property
+    def controller(self) -> ControlMethod:
+        """The control method (a :class:`ValueError` for the RL methods)."""
+        if not isinstance(self.method, CONTROL_TYPES):
+            raise ValueError(f"a {self.method.name} run is not a control method")
         return self.method
 
 
@@ -261,9 +287,15 @@ def setting_type(path: str) -> Any:
     return typing.get_type_hints(cls)[f.name]
 
 
+#: the run settings a control method (feedback, mpc, dpc) reads: it trains no agent and keeps no replay
+CONTROL_RUN_FIELDS = frozenset({"seed", "eval_episodes", "eval_seed", "threshold", "threads", "env_kwargs"})
+
+
 def has_setting(method: str, agent: str, path: str) -> bool:
     """Whether a run of ``method`` with ``agent`` has the setting ``path``."""
     head, _, rest = path.partition(".")
+    if method in CONTROL_METHODS and (head in ("agent", "experimental") or not rest):
+        return not rest and head in CONTROL_RUN_FIELDS
     if not rest or head == "experimental":
         return True
     if head == "agent":
@@ -297,6 +329,8 @@ def inapplicable_reason(env: str, method: str, agent: str, path: str) -> str | N
     """Why the setting ``path`` does nothing for a run of ``method`` with ``agent`` on ``env`` (``None``: it applies)."""
     head, _, rest = path.partition(".")
     flag = flag_of(path)
+    if method in CONTROL_METHODS and not has_setting(method, agent, path) and (head in ("agent", "experimental") or not rest):
+        return f"{flag} is a setting of the RL methods' training, not of --method {method} (it trains no agent)"
     if head == "agent" and rest and not has_setting(method, agent, path):
         agents = [name for name, cls in AGENT_TYPES.items() if rest in _fields(cls)]
         return f"{flag} is a setting of the agent {' and '.join(agents)}, not {agent}"
@@ -444,7 +478,7 @@ def resolve_model(cfg: TrainConfig) -> TrainConfig:
     ``model.n_intermediate`` the solver steps per control step. Other runs are returned unchanged.
     """
     m = cfg.method
-    if isinstance(m, MFRL):
+    if isinstance(m, (MFRL, *CONTROL_TYPES)):
         return cfg
     changes: dict[str, Any] = {}
     pde = is_pde_env(cfg.env)
@@ -479,6 +513,9 @@ def _check_runnable(cfg: TrainConfig) -> None:
     m = cfg.method
     if isinstance(m, MFRL):
         return
+    if isinstance(m, CONTROL_TYPES):
+        check_control(cfg)
+        return
     if task_class(cfg.env) is None:  # an env outside pimbrl: its data only
         if m.name != "mbrl":
             raise ConfigError(
@@ -492,6 +529,42 @@ def _check_runnable(cfg: TrainConfig) -> None:
     check_coefficients(cfg)
     check_network(cfg)
     check_rollout_starts(cfg)
+
+
+def check_control(cfg: TrainConfig) -> None:
+    """What a control method needs of the system: its equation, a differentiable reward, coefficients it has.
+
+    One-line :class:`ConfigError` naming the problem and the fix.
+    """
+    m = cfg.controller
+    cls = task_class(cfg.env)
+    if cls is None:
+        raise ConfigError(
+            f"--method {m.name} needs the system's equation, and {cfg.env} declares none: declare the system "
+            "(docs/systems.md), or use an RL method"
+        )
+    physics = cls(**cfg.env_kwargs).physics
+    if not isinstance(m, Feedback):
+        if not getattr(physics, "differentiable_reward", True):
+            raise ConfigError(
+                f"--method {m.name} optimises the reward by gradient, and {physics.name}'s reward has none "
+                "(+1 per step until the episode ends): use --method feedback (an LQR), or an RL method"
+            )
+        learn = m.learn
+        if learn.correction:
+            raise ConfigError(f"--method {m.name} identifies coefficients only: drop --learn.correction")
+        for name in [*m.prior, *learn.coefficients]:
+            if name not in physics.coefficients:
+                known = ", ".join(physics.coefficients) or "none"
+                raise ConfigError(f"{physics.name} has no coefficient {name!r}; its coefficients are: {known}")
+        if learn.coefficients and not physics.is_field and not physics.tensor_coefficients:
+            raise ConfigError(f"{physics.name}'s coefficients cannot be identified (they are not differentiable here)")
+    episodes = getattr(m, "validation_episodes", None)
+    if episodes is not None:
+        try:
+            cls(**cfg.env_kwargs).validation_initial_states(episodes)
+        except ValueError as exc:
+            raise ConfigError(f"--model.validation-episodes {episodes}: {exc}") from None
 
 
 def check_device(device: str) -> None:
@@ -681,10 +754,16 @@ def return_scale_warnings(cfg: TrainConfig, preset: str | None = None) -> list[s
 
 # ----------------------------------------------------------------------------- reading and writing
 def config_to_dict(cfg: TrainConfig) -> dict[str, Any]:
-    """A JSON-ready dict of ``cfg``: the method and the agent carry their ``name`` (tuples become lists)."""
+    """A JSON-ready dict of ``cfg``: the method and the agent carry their ``name`` (tuples become lists).
+
+    A control method's (feedback, mpc, dpc) has no agent and only the run settings it reads
+    (:data:`CONTROL_RUN_FIELDS`): what is written is what ran.
+    """
     data = dataclasses.asdict(cfg)
     data["method"] = {"name": cfg.method.name, **data["method"]}
     data["agent"] = {"name": cfg.agent.name, **data["agent"]}
+    if cfg.control:
+        data = {k: v for k, v in data.items() if k in ("env", "method") or k in CONTROL_RUN_FIELDS}
     return data
 
 

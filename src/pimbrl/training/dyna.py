@@ -43,7 +43,7 @@ from ..models.state_sources import PhysicsPairs, broad_actions, broad_states, ch
 from ..physics import Physics
 from ..spaces import ActionAdapter
 from .evaluation import Evaluator
-from .methods import MFRL, CoefficientFit, Method, ModelFit, PhysicsLoss
+from .methods import MFRL, CoefficientFit, DynaMethod, ModelFit, PhysicsLoss
 from .selection import PolicySelector
 from .streams import RandomStreams
 
@@ -82,7 +82,7 @@ class DynaModel:
 
     def __init__(
         self,
-        method: Method,
+        method: DynaMethod,
         task: Task,
         adapter: ActionAdapter,
         obs_dim: int,

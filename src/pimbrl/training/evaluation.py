@@ -19,6 +19,7 @@ learning curves of different methods are comparable point by point.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -41,6 +42,14 @@ class EvalResult:
 
     returns: np.ndarray  # (episodes,)
     lengths: np.ndarray  # (episodes,)
+    #: wall seconds spent inside the policy, and the control steps it acted on (summed over episodes)
+    inference_s: float = 0.0
+    control_steps: int = 0
+
+    @property
+    def inference_s_per_step(self) -> float | None:
+        """Wall seconds of the policy per control step and episode (``None`` where nothing was timed)."""
+        return self.inference_s / self.control_steps if self.control_steps else None
 
     @property
     def mean(self) -> float:
@@ -112,25 +121,33 @@ class Evaluator:
         returns = np.zeros(n)
         lengths = np.zeros(n, dtype=np.int64)
         alive = np.ones(n, dtype=bool)
+        spent, steps = 0.0, 0
         while alive.any():
-            actions = self.adapter.to_env(policy(obs))
-            obs, reward, terminated, truncated, _ = self.vec.step(actions)
+            start = time.perf_counter()
+            normalised = policy(obs)
+            spent += time.perf_counter() - start
+            steps += int(alive.sum())
+            obs, reward, terminated, truncated, _ = self.vec.step(self.adapter.to_env(normalised))
             returns += np.where(alive, reward, 0.0)
             lengths += alive
             alive &= ~(terminated | truncated)
-        return EvalResult(returns, lengths)
+        return EvalResult(returns, lengths, spent, steps)
 
     def _run_sequential(self, policy: Policy) -> EvalResult:
         returns, lengths = [], []
+        spent = 0.0
         for i in range(self.episodes):
             obs, _ = self.env.reset(seed=self.seed + i)
             total, steps, done = 0.0, 0, False
             while not done:
-                action = self.adapter.to_env(policy(np.asarray(obs)[None])[0])
+                start = time.perf_counter()
+                normalised = policy(np.asarray(obs)[None])[0]
+                spent += time.perf_counter() - start
+                action = self.adapter.to_env(normalised)
                 obs, reward, terminated, truncated, _ = self.env.step(action)
                 total += float(reward)
                 steps += 1
                 done = terminated or truncated
             returns.append(total)
             lengths.append(steps)
-        return EvalResult(np.array(returns), np.array(lengths))
+        return EvalResult(np.array(returns), np.array(lengths), spent, int(np.sum(lengths)))

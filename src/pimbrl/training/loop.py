@@ -41,12 +41,14 @@ from ..spaces import ActionAdapter
 from ..systems import system_origin
 from .collector import Collector
 from .config import TrainConfig, config_from_dict, config_to_dict
+from .control_run import ControlRun
 from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator
 from .logger import RunLogger
 from .rundir import CheckpointError, RunDirectory, package_versions, provenance, steps_to_threshold
 from .selection import PolicySelector
 from .streams import RandomStreams
+from .summary import RunSummary
 
 __all__ = [
     "STATE_KEYS",
@@ -63,30 +65,6 @@ __all__ = [
 
 #: ``on_event(name, run)`` is called after each part of the loop (for tests and instrumentation).
 EventHook = Callable[[str, "Run"], None]
-
-
-@dataclass(frozen=True)
-class RunSummary:
-    """Outcome of a run, as stored in ``config.json`` when it finishes."""
-
-    steps: int
-    updates: int
-    final_return_mean: float | None
-    best_return_mean: float | None
-    steps_to_threshold: int | None
-    wall_s: float
-    #: model-based policy selection (``imagine.select_episodes``): the step of the policy kept, and its test return
-    selected_step: int | None = None
-    selected_return_mean: float | None = None
-    #: what the method used to get there: real transitions (the environment's steps), imagined transitions
-    #: (made by the model, in the imagined buffer), the transitions a scheme of the known equation stepped
-    #: (known-scheme, identified-scheme and the hybrids: imagination and policy selection; simulator
-    #: transitions a model-free method does not have) and the real simulator's steps of the fine-tuning
-    #: switch's validation episodes; ``None``: unknown (resumed from a checkpoint that did not count them)
-    real_transitions: int | None = None
-    imagined_transitions: int | None = None
-    scheme_transitions: int | None = None
-    validation_transitions: int | None = None
 
 
 class UpdateSchedule:
@@ -135,6 +113,9 @@ class Run:
     schedule: UpdateSchedule
     t: int = 0
     last_checkpoint_t: int = 0
+    #: the policy's wall seconds per control step at the last test evaluation (not in checkpoints: the final
+    #: evaluation of every run measures it again)
+    inference_s_per_step: float | None = None
 
     @property
     def finished(self) -> bool:
@@ -247,6 +228,7 @@ class Run:
             imagined_transitions=0 if self.model is None else self.model.imagined_total,
             scheme_transitions=0 if self.model is None else self.model.scheme_transitions,
             validation_transitions=0 if self.model is None else self.model.validation_transitions,
+            inference_s_per_step=self.inference_s_per_step,
         )
 
     def lr_scale(self) -> float | None:
@@ -278,7 +260,7 @@ def _log_metrics(run: Run) -> None:
         run.run_dir.write_json("coefficients.json", run.model.coefficients_report())
 
 
-def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
+def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummary:
     """Train ``run`` to ``total_steps`` real steps (the paper's Algorithm 1; MFRL when ``run.model`` is None).
 
     Every real step: act and store the transition. Every ``update_every`` steps after ``update_after``:
@@ -287,6 +269,8 @@ def train(run: Run, on_event: EventHook | None = None) -> RunSummary:
     policy on the held-out test states. At an episode end: log it and, when due, checkpoint. At the end:
     a last evaluation, the final checkpoint and the summary in ``config.json``.
     """
+    if isinstance(run, ControlRun):  # feedback, mpc, dpc: no agent, no replay (pimbrl.control)
+        return run.train()
     cfg, log = run.cfg, run.logger
     event = on_event or (lambda name, r: None)
     if run.finished:  # e.g. killed between the final checkpoint and the status update
@@ -358,6 +342,7 @@ def _evaluate(run: Run) -> None:
     """
     with run.logger.timed("evaluate"):
         result = run.evaluator.run(lambda o: run.agent.act(o, deterministic=True))
+    run.inference_s_per_step = result.inference_s_per_step
     run.logger.evaluation(run.t, result, run.agent.n_updates)
     if run.model is not None:  # what the fine-tuning switch reads: the validation draws, never these test states
         with run.logger.timed("evaluate"):
@@ -425,7 +410,7 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
         extras = model.extras
     real = ReplayBuffer(min(cfg.buffer_size, cfg.total_steps), collector.obs_dim, collector.adapter.dim, extras=extras)
     columns = ["agent/critic_loss", "agent/q_mean", "agent/actor_loss"]
-    if cfg.agent.name == "sac":
+    if cfg.agent.sac_family:  # sac, crossq, redq: a learned entropy temperature
         columns += ["agent/entropy", "agent/alpha"]
     if cfg.experimental.lr_decay_after is not None:
         columns.append("lr_scale")
@@ -436,7 +421,7 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
     return Run(cfg, run_dir, streams, collector, real, agent, model, evaluator, logger, UpdateSchedule(cfg.update_every, cfg.utd))
 
 
-def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, command: str = "") -> Run:
+def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, command: str = "") -> Run | ControlRun:
     """A new run of ``cfg`` in ``path`` (which must not hold another run); its ``config.json`` is written.
 
     The directory is created and locked before it is checked for a run, so of two processes starting a
@@ -446,7 +431,8 @@ def create_run(cfg: TrainConfig, path: str | Path, progress: bool = True, comman
     run_dir = RunDirectory(path)
     if run_dir.config_path.exists():
         raise FileExistsError(_exists_message(path))
-    run = build_run(cfg, run_dir, progress)  # first: a configuration that cannot run leaves no directory behind
+    # first: a configuration that cannot run leaves no directory behind
+    run: Run | ControlRun = ControlRun.build(cfg, run_dir, progress) if cfg.control else build_run(cfg, run_dir, progress)
     run_dir.path.mkdir(parents=True, exist_ok=True)
     run_dir.lock(command or None)
     try:
@@ -539,7 +525,7 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
 
 
-def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False) -> Run:
+def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False) -> Run | ControlRun:
     """The run in ``path`` at its last checkpoint (from the start if it has none).
 
     To continue training, the run directory is locked (held until :func:`train` ends), stale temporary
@@ -562,6 +548,10 @@ def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False
             run_dir.check_entries(writing=True)  # under the lock, before anything is changed
             run_dir.remove_stale_temporaries()
         cfg = read_run_config(run_dir)
+        if cfg.control:  # its stages are in control.json (a DPC policy's checkpoint is read by the run itself)
+            control = ControlRun.build(cfg, run_dir, progress)
+            control.load()
+            return control
         run = build_run(cfg, run_dir, progress)
         if run_dir.checkpoint_path.exists():
             state = run_dir.load_checkpoint()

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from ..config import (
+    FEEDBACK_KINDS,
     MAX_BATCH,
     MAX_LR,
     MAX_STEPS,
@@ -45,17 +46,24 @@ from ..config import (
 )
 
 __all__ = [
+    "CONTROL_METHODS",
+    "CONTROL_TYPES",
+    "DPC",
     "MBRL",
     "METHODS",
     "METHOD_TYPES",
     "MFRL",
+    "MPC",
     "NETWORKS",
     "SECTIONS",
     "AccuracyCheck",
     "CoefficientFit",
+    "ControlMethod",
     "DynaMethod",
+    "Feedback",
     "Finetune",
     "Hybrid",
+    "Identification",
     "IdentifiedScheme",
     "Imagination",
     "KnownScheme",
@@ -233,6 +241,19 @@ class CoefficientFit:
         return bool(self.coefficients) or self.correction
 
 
+@dataclass(frozen=True)
+class Identification:
+    """Under partial physics, the coefficients of ``learn`` fitted to real transitions before control starts."""
+
+    steps: int = param(
+        2_000,
+        "real transitions (uniformly random actions, from training resets) to fit the coefficients to",
+        [positive(), at_most(MAX_STEPS)],
+    )
+    iterations: int = param(2_000, "Adam steps of the coefficient fit", [positive(), at_most(1_000_000)])
+    batch_size: int = param(256, "transitions per Adam step", [positive(), at_most(MAX_BATCH)])
+
+
 #: the sections a method may have, and the class of each
 SECTIONS: dict[str, type] = {
     "fit": ModelFit,
@@ -241,6 +262,7 @@ SECTIONS: dict[str, type] = {
     "finetune": Finetune,
     "physics": PhysicsLoss,
     "learn": CoefficientFit,
+    "identify": Identification,
 }
 
 
@@ -370,12 +392,112 @@ class PiHybrid(Hybrid):
     learn: CoefficientFit = _section(CoefficientFit, "coefficients fitted to the labels")
 
 
+# ----------------------------------------------------------------------------- control that knows the physics
+def _validation_episodes() -> Any:
+    return param(
+        20,
+        "validation episodes that choose among settings (the test states decide nothing; KS: at most 50)",
+        [positive(), at_most(MAX_BATCH)],
+    )
+
+
+def _gains_ok(value: tuple[float, ...]) -> bool:
+    return all(isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g >= 0 for g in value)
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """A feedback floor (:mod:`pimbrl.control.feedback`): no learning, one gain chosen on the validation draws."""
+
+    name: ClassVar[str] = "feedback"
+    model_kind: ClassVar[str | None] = None
+    kind: str = param(
+        "auto",
+        "the controller: proportional (PDEs), lqr, energy-lqr (the pendulum); auto: the one the system declares",
+        one_of("auto", *FEEDBACK_KINDS),
+    )
+    gains: tuple[float, ...] = param(
+        (),
+        "gains tried on the validation draws; empty: the system's (or the kind's default grid)",
+        (_gains_ok, "must be finite numbers >= 0"),
+    )
+    validation_episodes: int = _validation_episodes()
+
+
+def _control_prior() -> Any:
+    return param(
+        {},
+        "coefficients the controller believes where they differ from the environment's: name -> value (a wrong "
+        "prior; on the command line convection=1.3); empty: the environment's own (known physics)",
+        (_prior_ok, "must be a mapping of coefficient names to finite numbers"),
+    )
+
+
+@dataclass(frozen=True)
+class MPC:
+    """Model-predictive control by gradient through the prior's coarse scheme (:mod:`pimbrl.control.mpc`)."""
+
+    name: ClassVar[str] = "mpc"
+    model_kind: ClassVar[str | None] = None
+    horizon: int = param(20, "control steps planned ahead", [positive(), at_most(10_000)])
+    iterations: int = param(5, "Adam steps on the plan per control step (warm-started)", [positive(), at_most(100_000)])
+    first_iterations: int = param(
+        30, "Adam steps at an episode's first control step (from a zero plan)", [positive(), at_most(100_000)]
+    )
+    lr: float = param(0.1, "Adam learning rate on the plan (normalised action units)", [positive(), at_most(MAX_LR)])
+    n_intermediate: int = _pde_param(
+        5, "ETDRK4 steps of the coarse scheme per control step (KS: 1 suffices)", [positive(), at_most(1_000)]
+    )
+    batch: int = param(200, "test episodes planned at once (and per resumable chunk)", [positive(), at_most(MAX_BATCH)])
+    prior: dict[str, float] = _control_prior()
+    learn: CoefficientFit = _section(CoefficientFit, "coefficients identified from real transitions first")
+    identify: Identification = _section(Identification, "the real transitions and the fit that identify them")
+
+
+@dataclass(frozen=True)
+class DPC:
+    """Differentiable predictive control: a policy network trained through the coarse scheme (:mod:`pimbrl.control.dpc`)."""
+
+    name: ClassVar[str] = "dpc"
+    model_kind: ClassVar[str | None] = None
+    horizon: int = param(20, "control steps back-propagated through per rollout", [positive(), at_most(10_000)])
+    iterations: int = param(3_000, "gradient steps of the policy", [positive(), at_most(10_000_000)])
+    batch_size: int = param(64, "rollouts per gradient step", [positive(), at_most(MAX_BATCH)])
+    lr: float = param(1e-3, "Adam learning rate of the policy", [positive(), at_most(MAX_LR)])
+    hidden: tuple[int, ...] = param(
+        (256, 256),
+        "hidden layer sizes of the policy",
+        (lambda v: 0 < len(v) <= 16 and all(0 < h <= 4_096 for h in v), "must be 1 to 16 layer sizes in [1, 4,096]"),
+    )
+    continue_fraction: float = param(
+        0.5, "fraction of rollouts continuing from states earlier rollouts reached (the rest: fresh resets)", in_range(0.0, 1.0)
+    )
+    validate_every: int = param(
+        250, "gradient steps between validation episodes (the best policy is kept)", [positive(), at_most(10_000_000)]
+    )
+    validation_episodes: int = _validation_episodes()
+    n_intermediate: int = _pde_param(
+        5, "ETDRK4 steps of the coarse scheme per control step (KS: 1 suffices)", [positive(), at_most(1_000)]
+    )
+    prior: dict[str, float] = _control_prior()
+    learn: CoefficientFit = _section(CoefficientFit, "coefficients identified from real transitions first")
+    identify: Identification = _section(Identification, "the real transitions and the fit that identify them")
+
+
+#: a control method's configuration (no agent, no replay: :mod:`pimbrl.control`)
+ControlMethod = Feedback | MPC | DPC
+CONTROL_TYPES = (Feedback, MPC, DPC)
+
 #: a method's configuration
-Method = MFRL | MBRL | PiMBRL | KnownScheme | IdentifiedScheme | Hybrid | PiHybrid
+Method = MFRL | MBRL | PiMBRL | KnownScheme | IdentifiedScheme | Hybrid | PiHybrid | Feedback | MPC | DPC
 #: the configuration of a method with a model (every one but MFRL)
 DynaMethod = MBRL | PiMBRL | KnownScheme | IdentifiedScheme | Hybrid | PiHybrid
 #: every method by name, in the order the help lists them
-METHOD_TYPES: dict[str, type] = {cls.name: cls for cls in (MFRL, MBRL, PiMBRL, KnownScheme, IdentifiedScheme, Hybrid, PiHybrid)}
+METHOD_TYPES: dict[str, type] = {
+    cls.name: cls for cls in (MFRL, MBRL, PiMBRL, KnownScheme, IdentifiedScheme, Hybrid, PiHybrid, Feedback, MPC, DPC)
+}
+#: the methods of :mod:`pimbrl.control`: they train no agent
+CONTROL_METHODS = tuple(cls.name for cls in CONTROL_TYPES)
 METHODS = tuple(METHOD_TYPES)
 
 

@@ -487,6 +487,7 @@ class RunDirectory:
         "metrics.csv": "regular file",
         "selection.csv": "regular file",
         "coefficients.json": "regular file",
+        "control.json": "regular file",
         "checkpoints": "directory",
         "checkpoints/latest.pt": "regular file",
         "tb": "directory",

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..config import ConfigError, validate
 from .config import TrainConfig, config_to_dict
+from .control_run import ControlRun
 from .loop import Run, RunSummary, create_run, open_run, read_run_config, train
 from .rundir import RunDirectory
 
@@ -65,6 +66,11 @@ def load_run(path: str | Path, *, require_checkpoint: bool = False) -> Run:
     raises ``FileNotFoundError`` saying there is nothing to evaluate yet.
     """
     run = open_run(path, progress=False, inspect_only=True)
+    if isinstance(run, ControlRun):
+        raise ValueError(
+            f"{path} is a {run.cfg.method.name} run: it has no agent to evaluate; its test return is in evaluations.csv "
+            "and its summary in config.json"
+        )
     if require_checkpoint and not run.run_dir.checkpoint_path.exists():
         raise FileNotFoundError(f"{path} has no checkpoint yet: nothing to evaluate (train or resume it first)")
     return run

@@ -1,0 +1,285 @@
+"""A run of a control method (feedback, mpc, dpc): the same run directory as an RL run, and resumable.
+
+What it does, in order (each stage's outcome saved in ``control.json`` before the next starts, so that a
+killed run resumes at the stage it was in):
+
+1. **identify** (mpc, dpc with ``learn.coefficients``): real transitions with random actions from the
+   training resets, the coefficients fitted to them (:mod:`pimbrl.control.identify`); those are the
+   method's real steps;
+2. **tune** (feedback): the gain with the best mean return on the validation draws;
+   **train** (dpc): the policy through the scheme, the best on the validation draws kept
+   (``checkpoints/latest.pt`` at every validation);
+3. **test**: the controller on the test states, in chunks of ``batch`` episodes (mpc), each chunk's returns
+   saved as it ends.
+
+The outcome is one row of ``evaluations.csv`` at the real steps used, and the summary in ``config.json``:
+real transitions, scheme transitions (MPC's planning, DPC's training rollouts), validation transitions
+(the real simulator's validation episodes), wall time, and the inference cost per control step and state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import ConfigError
+from ..control.base import Controller, ControlResult, play, task_of
+from ..control.feedback import declared_feedback, make_feedback, tune_gain
+from ..envs import Task
+from ..fileio import MAX_JSON_BYTES, read_below, strict_json
+from .config import TrainConfig
+from .methods import DPC, MPC, Feedback
+from .rundir import RunDirectory, steps_to_threshold
+from .summary import RunSummary
+
+__all__ = ["CONTROL_FILE", "ControlRun"]
+
+#: the stage file of a control run
+CONTROL_FILE = "control.json"
+
+
+@dataclass
+class ControlRun:
+    """A control method's run in ``run_dir`` (see the module docstring)."""
+
+    cfg: TrainConfig
+    run_dir: RunDirectory
+    task: Task
+    progress: bool = True
+    state: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    # ------------------------------------------------------------------ the surface the CLI and drivers use
+    @property
+    def t(self) -> int:
+        """The real steps used so far (identification's transitions)."""
+        return int(self.state.get("identify", {}).get("real_transitions", 0))
+
+    @property
+    def finished(self) -> bool:
+        """Whether the test evaluation is done."""
+        return bool(self.state.get("done"))
+
+    @classmethod
+    def build(cls, cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) -> ControlRun:
+        """The run of ``cfg`` (nothing written); a configuration that cannot run is a one-line error here."""
+        torch.set_num_threads(cfg.threads)
+        try:
+            task = task_of(cfg.env, cfg.env_kwargs)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        return cls(cfg, run_dir, task, progress)
+
+    def load(self) -> None:
+        """The stages already done, from ``control.json`` (none where it is missing)."""
+        path = self.run_dir.path / CONTROL_FILE
+        if path.exists():
+            payload = strict_json(read_below(self.run_dir.path, CONTROL_FILE, MAX_JSON_BYTES), path)
+            if not isinstance(payload, dict):
+                raise ValueError(f"{path} is not a JSON object; delete it to restart the run")
+            self.state = payload
+
+    def _save(self) -> None:
+        self.state["wall_s"] = self.wall_s
+        self.run_dir.write_json(CONTROL_FILE, self.state)
+
+    def _say(self, text: str) -> None:
+        if self.progress:
+            print(f"{self.cfg.method.name} {self.cfg.env}: {text}", file=sys.stderr, flush=True)
+
+    # ------------------------------------------------------------------ the stages
+    def train(self) -> RunSummary:
+        """Run the stages not yet done and return the summary (:class:`~pimbrl.training.loop.RunSummary`)."""
+        self._started = time.perf_counter()
+        self._offset = float(self.state.get("wall_s", 0.0))
+        try:
+            if not self.finished:
+                controller = self._controller()
+                self._test(controller)
+            return self._finish()
+        finally:
+            self.run_dir.close()
+
+    @property
+    def wall_s(self) -> float:
+        """Wall seconds of the run over all its sessions."""
+        started = getattr(self, "_started", None)
+        return float(self.state.get("wall_s", 0.0)) if started is None else self._offset + time.perf_counter() - started
+
+    def _controller(self) -> Controller:
+        m = self.cfg.method
+        if isinstance(m, Feedback):
+            return self._feedback(m)
+        assert isinstance(m, (MPC, DPC))
+        physics = self._physics(m)
+        from ..control.plant import make_plant
+
+        plant = make_plant(physics, m.n_intermediate)
+        if isinstance(m, MPC):
+            from ..control.mpc import GradientMPC
+
+            return GradientMPC(plant, m.horizon, m.iterations, m.lr, m.first_iterations, self.task.max_episode_steps)
+        return self._dpc(m, plant)
+
+    def _physics(self, m: MPC | DPC) -> Any:
+        """The physics the controller believes: the prior, with identified coefficients where it learns some."""
+        prior = self.task.physics.with_coefficients(**m.prior)
+        if not m.learn.coefficients:
+            return prior
+        if "identify" not in self.state:
+            from ..control.identify import collect_random, identify_coefficients
+
+            self._say(f"identifying {', '.join(m.learn.coefficients)} from {m.identify.steps:,d} real transitions")
+            data = collect_random(self.cfg.env, self.cfg.env_kwargs, m.identify.steps, self.cfg.seed)
+            values = identify_coefficients(
+                prior,
+                m.learn.ranges(),
+                data,
+                m.n_intermediate,
+                m.identify.iterations,
+                m.identify.batch_size,
+                m.learn.lr,
+                self.cfg.seed,
+            )
+            truth = self.task.physics.coefficient_values()
+            self.state["identify"] = {
+                "real_transitions": m.identify.steps,
+                "prior": {k: prior.coefficient_values()[k] for k in values},
+                "identified": values,
+                "true": {k: truth[k] for k in values},
+            }
+            self._say(f"identified {values} (true {self.state['identify']['true']})")
+            self._save()
+        return prior.with_coefficients(**self.state["identify"]["identified"])
+
+    def _validation_states(self, episodes: int) -> np.ndarray:
+        return self.task.validation_initial_states(episodes)
+
+    def _feedback(self, m: Feedback) -> Controller:
+        kind, options, gains = declared_feedback(self.cfg.env, self.task.physics, m.kind)
+        if "feedback" not in self.state:
+            states = self._validation_states(m.validation_episodes)
+            best, scores, steps = tune_gain(self.cfg.env, self.cfg.env_kwargs, self.task, kind, m.gains or gains, states, options)
+            self.state["feedback"] = {"kind": kind, "gain": best, "validation": [{"gain": g, "return": r} for g, r in scores]}
+            self.state["validation_transitions"] = steps
+            self._say(f"{kind} gain {best:g} chosen on {m.validation_episodes} validation episodes")
+            self._save()
+        chosen = self.state["feedback"]
+        return make_feedback(self.task, chosen["kind"], float(chosen["gain"]), options)
+
+    def _dpc(self, m: DPC, plant: Any) -> Controller:
+        from ..control.dpc import DPCPolicy, DPCTrainer
+
+        policy = DPCPolicy(plant, m.hidden, self.cfg.seed)
+        trainer = DPCTrainer(policy, self.task, m.horizon, m.batch_size, m.lr, m.continue_fraction, self.cfg.seed)
+        if self.run_dir.checkpoint_path.exists():
+            trainer.load_state_dict(self.run_dir.load_checkpoint()["dpc"])
+        validation = self._validation_states(m.validation_episodes)
+        validation_steps = int(self.state.get("validation_transitions", 0))
+
+        def score(p: Controller) -> float:
+            nonlocal validation_steps
+            result = play(self.cfg.env, self.cfg.env_kwargs, p, validation)
+            validation_steps += result.control_steps
+            return result.mean
+
+        while trainer.steps < m.iterations:
+            predicted = trainer.step()
+            if trainer.steps % m.validate_every == 0 or trainer.steps == m.iterations:
+                value = trainer.validate(score)
+                self._say(f"step {trainer.steps:,d}: predicted {predicted:.2f}, validation {value:.2f}")
+                self.run_dir.save_checkpoint({"dpc": trainer.state_dict()})
+                self.state["validation_transitions"] = validation_steps
+                self.state["dpc"] = {
+                    "steps": trainer.steps,
+                    "scheme_transitions": trainer.scheme_transitions,
+                    "best_step": trainer.best_step,
+                    "best_validation_return": trainer.best_return,
+                    "history": trainer.history,
+                }
+                self._save()
+        if trainer.best_state is not None:
+            policy.load_state_dict(trainer.best_state)
+        return policy
+
+    def _test(self, controller: Controller) -> None:
+        states = self.task.protocol_initial_states("test", self.cfg.eval_episodes, self.cfg.eval_seed)
+        batch = getattr(self.cfg.method, "batch", len(states))
+        chunks: list[dict[str, Any]] = self.state.setdefault("test", {"chunks": []})["chunks"]
+        done = sum(len(c["returns"]) for c in chunks)
+        while done < len(states):
+            part = states[done : done + batch]
+            result = play(self.cfg.env, self.cfg.env_kwargs, controller, part)
+            chunks.append(
+                {
+                    "returns": result.returns.tolist(),
+                    "lengths": result.lengths.tolist(),
+                    "inference_s": result.inference_s,
+                    "control_steps": result.control_steps,
+                    "scheme_transitions": result.scheme_transitions,
+                }
+            )
+            done += len(part)
+            self._say(
+                f"test episodes {done}/{len(states)}: mean return so far {np.mean([r for c in chunks for r in c['returns']]):.3f}"
+            )
+            self._save()
+        returns = np.array([r for c in chunks for r in c["returns"]])
+        lengths = np.array([n for c in chunks for n in c["lengths"]])
+        result = ControlResult(
+            returns,
+            lengths,
+            sum(c["inference_s"] for c in chunks),
+            sum(c["control_steps"] for c in chunks),
+            sum(c["scheme_transitions"] for c in chunks),
+        )
+        row = {
+            "step": self.t,
+            "return_mean": result.mean,
+            "return_min": float(returns.min()),
+            "return_max": float(returns.max()),
+            "return_std": float(returns.std()),
+            "length_mean": float(lengths.mean()),
+            "episodes": len(returns),
+            "updates": self._updates(),
+            "wall_s": self.wall_s,
+        }
+        self.run_dir.evaluations.truncate_after(-1)  # one row: a resumed run writes it again
+        self.run_dir.evaluations.append(row)
+        self.state["inference_s_per_step"] = result.inference_s_per_step
+        self.state["done"] = True
+        self._save()
+        cost = result.inference_s_per_step * 1e3
+        self._say(f"test return {result.mean:.3f} over {len(returns)} episodes; {cost:.3f} ms per control step")
+
+    def _updates(self) -> int:
+        """Gradient steps of the controller's training (DPC), 0 for the others."""
+        return int(self.state.get("dpc", {}).get("steps", 0))
+
+    def _finish(self) -> RunSummary:
+        rows = self.run_dir.evaluations.read()
+        final = float(rows[-1]["return_mean"]) if rows else None
+        scheme = int(self.state.get("dpc", {}).get("scheme_transitions", 0)) + sum(
+            int(c["scheme_transitions"]) for c in self.state.get("test", {}).get("chunks", [])
+        )
+        summary = RunSummary(
+            steps=self.t,
+            updates=self._updates(),
+            final_return_mean=final,
+            best_return_mean=final,
+            steps_to_threshold=steps_to_threshold(rows, self.cfg.threshold),
+            wall_s=self.wall_s,
+            real_transitions=self.t,
+            imagined_transitions=0,
+            scheme_transitions=scheme,
+            validation_transitions=int(self.state.get("validation_transitions", 0)),
+            inference_s_per_step=self.state.get("inference_s_per_step"),
+        )
+        if self.run_dir.status != "finished":
+            self.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))
+        return summary
