@@ -169,10 +169,10 @@ def test_dpc_learns_through_the_scheme_and_keeps_the_best_policy_on_validation()
     for _ in range(61):
         trainer.step()
     assert predicted() > before + 1.0
-    scores = iter([-300.0, -100.0, -200.0])
+    scores = iter([(-300.0, 10), (-100.0, 10), (-200.0, 10)])
     for _ in range(3):
         trainer.validate(lambda p: next(scores))
-    assert trainer.best_return == -100.0 and trainer.best_step == 61
+    assert trainer.best_return == -100.0 and trainer.best_step == 61 and trainer.validation_transitions == 30
     state = trainer.state_dict()
     again = DPCTrainer(DPCPolicy(plant, (32, 32), seed=1), task, 10, 16, 3e-3, 0.5, seed=0)
     again.load_state_dict(state)
@@ -260,10 +260,41 @@ def test_control_methods_refuse_what_they_cannot_do_in_one_line() -> None:
         resolve_config(PENDULUM, {"method": "feedback", "agent.policy_delay": 3})
     with pytest.raises(ConfigError, match="--utd is a setting of the RL methods' training, not of --method mpc"):
         resolve_config(PENDULUM, {"method": "mpc", "utd": 5})
+    with pytest.raises(ConfigError, match="--agent does nothing with --method dpc"):
+        resolve_config(PENDULUM, {"method": "dpc", "agent": "sac"})
+    # identification must start from what the controller believes, never from the environment's truth
+    with pytest.raises(ConfigError, match="would start from the environment's true value"):
+        resolve_config(BURGERS, {"method": "mpc", "env_kwargs": {"nu": 0.013}, "learn.coefficients": {"nu": None}})
+    with pytest.raises(ConfigError, match=r"--identify\.\* does nothing without --learn\.coefficients"):
+        resolve_config(BURGERS, {"method": "mpc", "identify.steps": 500})
+    with pytest.raises(ConfigError, match="physics prior: .*nu"):
+        resolve_config(BURGERS, {"method": "mpc", "model.prior": {"nu": -1.0}})
+    with pytest.raises(ConfigError, match="energy-lqr is the pendulum's floor"):
+        resolve_config(BURGERS, {"method": "feedback", "model.kind": "energy-lqr"})
+    with pytest.raises(ConfigError, match="proportional feedback is for PDE systems"):
+        resolve_config(PENDULUM, {"method": "feedback", "model.kind": "proportional"})
 
 
-def test_pimbrl_eval_of_a_control_run_says_where_its_result_is(tmp_path, capsys) -> None:
+def test_pimbrl_eval_and_extend_of_a_control_run_say_what_it_is(tmp_path, capsys) -> None:
     path = tmp_path / "fb"
     train(create_run(_cfg(PENDULUM, "feedback", **{"model.gains": (0.5,)}), path, progress=False))
     assert main(["eval", str(path)]) == 2
     assert "has no agent to evaluate" in capsys.readouterr().err
+    assert main(["resume", str(path), "--total-steps", "5000"]) == 2
+    assert "has no step budget to raise" in capsys.readouterr().err
+    assert json.loads((path / "config.json").read_text())["status"] == "finished"
+
+
+def test_compare_and_the_study_report_carry_a_controllers_costs(tmp_path, capsys) -> None:
+    run_dir = tmp_path / "cmp"
+    args = ["compare", "pendulum", "--methods", "feedback", "--seeds", "1", "--run-dir", str(run_dir), "--jobs", "1"]
+    assert main([*args, "--", "--model.gains", "0.5", "--model.validation-episodes", "2", "--eval-episodes", "2"]) == 0
+    capsys.readouterr()
+    record = json.loads((run_dir / "record.json").read_text())
+    (entry,) = record["runs"]
+    assert entry["method"] == "feedback" and entry["agent"] is None and entry["real_transitions"] == 0
+    assert entry["validation_transitions"] == 2 * 200 and entry["inference_s_per_step"] > 0
+    assert main(["study", "report", str(run_dir / "study.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "| validation transitions | inference (ms per control step) |" in out
+    assert "| feedback | 1 |" in out and "| 400 |" in out

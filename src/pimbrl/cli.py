@@ -100,9 +100,9 @@ def _feedback_policy(env_id: str, env: Any, gain: float) -> Any:
     return lambda obs: env_actions(task, controller(base.state[None], np.array([base.elapsed_steps])))[0]
 
 
-def _default_run_dir(env_id: str, method: str, agent: str, seed: int) -> str:
+def _default_run_dir(env_id: str, method: str, agent: str | None, seed: int) -> str:
     short = env_id.split("/")[-1].split("-v")[0].lower()
-    return str(Path("runs") / short / f"{method}-{agent}-seed{seed}")
+    return str(Path("runs") / short / (f"{method}-{agent}-seed{seed}" if agent else f"{method}-seed{seed}"))
 
 
 def _train_config_from_args(args: argparse.Namespace):
@@ -183,7 +183,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
         print(json.dumps(config_to_dict(cfg), indent=2))
         return 0
-    run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method.name, cfg.agent.name, cfg.seed)
+    run_dir = args.run_dir or _default_run_dir(cfg.env, cfg.method.name, None if cfg.control else cfg.agent.name, cfg.seed)
     _check_run_dir(run_dir)
     from .training import create_run
 

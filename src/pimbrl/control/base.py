@@ -49,10 +49,13 @@ class ControlResult:
     lengths: np.ndarray
     #: seconds inside the controller, over all control steps and states
     inference_s: float
-    #: control steps summed over the episodes (each state's steps while it was alive)
+    #: control steps summed over the episodes (each state's steps while it was alive): real simulator steps
     control_steps: int
     #: scheme/model transitions the controller stepped while acting
     scheme_transitions: int
+    #: states the controller computed actions for (a batched call acts for ended episodes too); default:
+    #: ``control_steps``
+    acted: int | None = None
 
     @property
     def mean(self) -> float:
@@ -61,8 +64,9 @@ class ControlResult:
 
     @property
     def inference_s_per_step(self) -> float:
-        """Wall seconds of the controller per control step and state (batched calls share their time)."""
-        return self.inference_s / max(self.control_steps, 1)
+        """Wall seconds of the controller per state it computed an action for (batched calls share their time)."""
+        acted = self.control_steps if self.acted is None else self.acted
+        return self.inference_s / max(acted, 1)
 
 
 def task_of(env_id: str, env_kwargs: dict[str, Any]) -> Task:
@@ -102,19 +106,23 @@ def play(
     alive = np.ones(n, dtype=bool)
     k = np.zeros(n, dtype=np.int64)
     spent = 0.0
-    steps = 0
+    steps = acted = 0
     while alive.any():
         states = base.states  # type: ignore[attr-defined]
         start = time.perf_counter()
         actions = controller(states, k.copy())
         spent += time.perf_counter() - start
         if not np.all(np.isfinite(actions)):
-            raise FloatingPointError(f"the controller gave a non-finite action at step {int(k.max())}")
+            raise FloatingPointError(
+                f"the controller gave a non-finite action at step {int(k.max())}; for MPC or DPC, give the scheme more "
+                "steps per control step (--model.n-intermediate) or a smaller --model.lr"
+            )
         _, reward, terminated, truncated, _ = vec.step(env_actions(task, actions))
         steps += int(alive.sum())
+        acted += n
         returns += np.where(alive, reward, 0.0)
         lengths += alive
         alive &= ~(terminated | truncated)
         k += 1
     vec.close()
-    return ControlResult(returns, lengths, spent, steps, controller.transitions - before)
+    return ControlResult(returns, lengths, spent, steps, controller.transitions - before, acted)

@@ -89,6 +89,10 @@ class DPCTrainer:
     seed: int
     steps: int = 0
     scheme_transitions: int = 0
+    #: gradient steps skipped because a gradient was not finite
+    skipped: int = 0
+    #: real simulator steps of the validation episodes
+    validation_transitions: int = 0
     best_return: float | None = None
     best_step: int | None = None
     best_state: dict[str, Any] | None = None
@@ -121,23 +125,32 @@ class DPCTrainer:
             total = total + torch.where(alive, r, torch.zeros_like(r))
             k = k + 1
             alive = alive & (k < self.episode_steps)
-        loss = -total.mean()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"the DPC loss became {float(loss)}; lower --model.lr or --model.horizon")
+        finite = torch.isfinite(total)
+        if not bool(finite.any()):
+            raise FloatingPointError(
+                "every DPC rollout blew up in the scheme; lower --model.lr or --model.horizon, or check the prior"
+            )
+        loss = -total[finite].mean()  # a rollout that blew up is left out of the loss
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        nn.utils.clip_grad_norm_(self.policy.parameters(), 10.0)
-        self.optimizer.step()
+        grads = [p.grad for p in self.policy.parameters() if p.grad is not None]
+        if all(bool(torch.isfinite(g).all()) for g in grads):
+            nn.utils.clip_grad_norm_(self.policy.parameters(), 10.0)
+            self.optimizer.step()
+        else:  # a blown-up row can still send NaN back through the batch: the step is skipped, never applied
+            self.skipped += 1
         keep = (k < self.episode_steps).numpy() & np.isfinite(u.detach().numpy()).all(-1)
         self.pool_u = np.concatenate([self.pool_u, u.detach().numpy()[keep]])[-20 * self.batch_size :]
         self.pool_k = np.concatenate([self.pool_k, k.numpy()[keep]])[-20 * self.batch_size :]
         self.steps += 1
         self.scheme_transitions += len(total) * self.horizon
-        return float(total.mean().detach())
+        return float(total[finite].mean().detach())
 
-    def validate(self, score: Callable[[DPCPolicy], float]) -> float:
-        """Score the policy (``score``: its mean return on the validation draws); keep it if it is the best."""
-        value = float(score(self.policy))
+    def validate(self, score: Callable[[DPCPolicy], tuple[float, int]]) -> float:
+        """Score the policy (``score``: its mean return on the validation draws and the steps played); keep the best."""
+        value, steps = score(self.policy)
+        value = float(value)
+        self.validation_transitions += int(steps)
         self.history.append({"step": float(self.steps), "validation_return": value})
         if self.best_return is None or value > self.best_return:
             self.best_return, self.best_step = value, self.steps
@@ -154,6 +167,8 @@ class DPCTrainer:
             "pool_k": torch.as_tensor(self.pool_k),
             "steps": self.steps,
             "scheme_transitions": self.scheme_transitions,
+            "skipped": self.skipped,
+            "validation_transitions": self.validation_transitions,
             "best_return": self.best_return,
             "best_step": self.best_step,
             "best_state": self.best_state,
@@ -169,6 +184,8 @@ class DPCTrainer:
         self.pool_k = state["pool_k"].numpy()
         self.steps = int(state["steps"])
         self.scheme_transitions = int(state["scheme_transitions"])
+        self.skipped = int(state.get("skipped", 0))
+        self.validation_transitions = int(state.get("validation_transitions", 0))
         self.best_return = state["best_return"]
         self.best_step = state["best_step"]
         self.best_state = state["best_state"]

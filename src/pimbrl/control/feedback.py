@@ -33,9 +33,12 @@ from .base import Controller, play
 
 __all__ = [
     "FEEDBACK_KINDS",
+    "FEEDBACK_OPTIONS",
     "LQR",
     "EnergySwingUp",
     "ProportionalFeedback",
+    "RiccatiError",
+    "check_feedback",
     "declared_feedback",
     "default_feedback",
     "feedback_gains",
@@ -88,6 +91,18 @@ def linearise(physics: Physics, state: np.ndarray, action: np.ndarray) -> tuple[
     return jac_u.numpy(), jac_a.numpy()
 
 
+class RiccatiError(ValueError):
+    """The LQR's Riccati iteration did not settle: the linearised system is not stabilisable at that target."""
+
+
+#: the options each kind of floor takes (:attr:`pimbrl.systems.System.feedback_options`)
+FEEDBACK_OPTIONS: dict[str, tuple[str, ...]] = {
+    "proportional": (),
+    "lqr": ("state", "action", "q"),
+    "energy-lqr": ("switch", "speed"),
+}
+
+
 def riccati_gain(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, iterations: int = 10_000) -> np.ndarray:
     """The LQR gain ``K`` (``a = -K u``) of the discrete Riccati equation, by fixed-point iteration.
 
@@ -107,7 +122,10 @@ def _riccati(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, p: np.n
         if np.max(np.abs(p_next - p)) <= 1e-10 * max(1.0, float(np.max(np.abs(p)))):
             return np.linalg.solve(r + b.T @ p_next @ b, b.T @ p_next @ a)
         p = p_next
-    raise ValueError("the LQR's Riccati iteration did not settle: the linearised system is not stabilisable there")
+    raise RiccatiError(
+        "the LQR's Riccati iteration did not settle: the linearised system is not stabilisable at its target; "
+        "give the floor another target (feedback_options state/action) or another kind (--model.kind)"
+    )
 
 
 class LQR(Controller):
@@ -137,6 +155,8 @@ class EnergySwingUp(Controller):
     """
 
     def __init__(self, physics: Physics, gain: float, switch: float = 0.5, speed: float = 2.0) -> None:
+        if physics.name != "pendulum":
+            raise ValueError(f"energy-lqr is the pendulum's floor (its energy), not {physics.name}'s; use lqr or proportional")
         self.physics = physics
         self.gain = float(gain)
         self.cos_switch = math.cos(switch)
@@ -157,6 +177,16 @@ class EnergySwingUp(Controller):
 def default_feedback(physics: Physics) -> str:
     """The floor of a system that declares none: proportional for a PDE with actuator shapes, else an LQR."""
     return "proportional" if getattr(physics, "actuator_shapes", None) is not None else "lqr"
+
+
+def check_feedback(env_id: str, task: Task, kind: str, gains: Sequence[float]) -> None:
+    """Build the floor ``kind`` of ``env_id`` once (at its first gain): a kind that cannot work fails here, in one line."""
+    chosen, options, declared = declared_feedback(env_id, task.physics, kind)
+    try:
+        controller = make_feedback(task, chosen, float((tuple(gains) or declared)[0]), options)
+    except RiccatiError:
+        return  # another gain may settle: the tuning scores each
+    controller(task.validation_initial_states(1), np.zeros(1, dtype=np.int64))  # shapes: observation, actuators
 
 
 def declared_feedback(env_id: str, physics: Physics, kind: str = "auto") -> tuple[str, dict[str, Any], tuple[float, ...]]:
@@ -183,6 +213,11 @@ def make_feedback(task: Task, kind: str, gain: float, options: dict[str, Any] | 
     """
     physics = task.physics
     options = dict(options or {})
+    if kind in FEEDBACK_OPTIONS:
+        unknown = sorted(set(options) - set(FEEDBACK_OPTIONS[kind]))
+        if unknown:
+            allowed = ", ".join(FEEDBACK_OPTIONS[kind]) or "none"
+            raise ValueError(f"{kind} feedback has no option {unknown[0]!r}; its options are: {allowed}")
     if kind == "proportional":
         return ProportionalFeedback(task, gain)
     if kind == "lqr":
@@ -209,22 +244,23 @@ def tune_gain(
 ) -> tuple[float, list[tuple[float, float]], int]:
     """The gain with the best mean return on ``validation_states``; every gain's return; the steps played.
 
-    The test states are never read here. A gain whose controller cannot be built (an LQR whose Riccati
-    iteration does not settle) is skipped; if none can be, the first error is raised.
+    The test states are never read here. A gain whose LQR cannot be built (its Riccati iteration does not
+    settle) scores minus infinity; if none can be, that error is raised.
     """
     scores: list[tuple[float, float]] = []
     steps = 0
-    first_error: ValueError | None = None
+    first_error: RiccatiError | None = None
     for gain in gains:
         try:
             controller = make_feedback(task, kind, gain, options)
-        except ValueError as exc:
+        except RiccatiError as exc:
             first_error = first_error or exc
+            scores.append((float(gain), -math.inf))
             continue
         result = play(env_id, env_kwargs, controller, validation_states)
         steps += result.control_steps
         scores.append((float(gain), result.mean))
-    if not scores:
+    if all(math.isinf(r) for _, r in scores):
         assert first_error is not None
         raise first_error
     best = max(scores, key=lambda s: s[1])[0]

@@ -66,16 +66,21 @@ class GradientMPC(Controller):
         optimizer = torch.optim.Adam([plan], lr=self.lr)
         steps = self.first_iterations if first else self.iterations
         for _ in range(steps):
-            loss = -self.planned_return(u0, k0, plan).sum()
+            before = plan.detach().clone()
+            planned = self.planned_return(u0, k0, plan)
+            # a row on which the scheme blew up gets no step: its gradient is zeroed, and after Adam's step
+            # (which would still move it by its momentum) its plan is restored; the other rows are independent
+            bad = ~torch.isfinite(planned)
+            loss = -torch.where(bad, torch.zeros_like(planned), planned).sum()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             assert plan.grad is not None
-            # a plan on which the scheme blew up gets no step (its row's gradient is not finite): it keeps its
-            # last finite actions; the other rows are independent of it
             plan.grad.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
             optimizer.step()
             with torch.no_grad():
                 plan.clamp_(-1.0, 1.0)
+                if bad.any():
+                    plan[bad] = before[bad]
         self.transitions += steps * self.horizon * len(states)
         done = plan.detach()
         self.plan = torch.cat([done[:, 1:], done[:, -1:]], dim=1)  # the warm start of the next step

@@ -449,6 +449,8 @@ def resolve_config(env: str, overrides: Mapping[str, Any] | None = None, *, pres
     typed = typed_overrides(overrides or {})
     recipe = recipe_of(env, preset)
     method, agent = run_names(env, typed, preset)
+    if method in CONTROL_METHODS and "agent" in typed:
+        raise ConfigError(f"--agent does nothing with --method {method}: it trains no agent; drop --agent")
     typed.pop("method", None)
     typed.pop("agent", None)
     if method not in METHODS:
@@ -550,21 +552,22 @@ def check_control(cfg: TrainConfig) -> None:
                 f"--method {m.name} optimises the reward by gradient, and {physics.name}'s reward has none "
                 "(+1 per step until the episode ends): use --method feedback (an LQR), or an RL method"
             )
-        learn = m.learn
-        if learn.correction:
+        if m.learn.correction:
             raise ConfigError(f"--method {m.name} identifies coefficients only: drop --learn.correction")
-        for name in [*m.prior, *learn.coefficients]:
-            if name not in physics.coefficients:
-                known = ", ".join(physics.coefficients) or "none"
-                raise ConfigError(f"{physics.name} has no coefficient {name!r}; its coefficients are: {known}")
-        if learn.coefficients and not physics.is_field and not physics.tensor_coefficients:
-            raise ConfigError(f"{physics.name}'s coefficients cannot be identified (they are not differentiable here)")
+        check_coefficients(cfg)
     episodes = getattr(m, "validation_episodes", None)
     if episodes is not None:
         try:
             cls(**cfg.env_kwargs).validation_initial_states(episodes)
         except ValueError as exc:
             raise ConfigError(f"--model.validation-episodes {episodes}: {exc}") from None
+    if isinstance(m, Feedback):
+        from ..control.feedback import check_feedback  # builds the controller once: a kind that cannot work fails here
+
+        try:
+            check_feedback(cfg.env, cls(**cfg.env_kwargs), m.kind, m.gains)
+        except ValueError as exc:
+            raise ConfigError(f"--method feedback: {exc}") from None
 
 
 def check_device(device: str) -> None:
@@ -653,10 +656,13 @@ def check_coefficients(cfg: TrainConfig) -> None:
     value would be the environment's true one (given in ``env_kwargs`` but not in the prior), an
     identified scheme with nothing to identify, the learning settings without anything learned.
     """
-    m = cfg.dyna
+    m: Any = cfg.method  # a Dyna method, or MPC/DPC (the same prior and learned coefficients)
     prior = dict(m.prior)
     learn: CoefficientFit | None = getattr(m, "learn", None)
     learned = learn.ranges() if learn is not None else {}
+    identify = getattr(m, "identify", None)
+    if identify is not None and not learned and identify != type(identify)():
+        raise ConfigError("--identify.* does nothing without --learn.coefficients (the coefficients to identify)")
     if m.name == "identified-scheme" and not learned:
         raise ConfigError(
             "--method identified-scheme fits coefficients of the prior's scheme: name them with --learn.coefficients "

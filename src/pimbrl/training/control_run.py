@@ -20,6 +20,7 @@ real transitions, scheme transitions (MPC's planning, DPC's training rollouts), 
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -165,7 +166,8 @@ class ControlRun:
         if "feedback" not in self.state:
             states = self._validation_states(m.validation_episodes)
             best, scores, steps = tune_gain(self.cfg.env, self.cfg.env_kwargs, self.task, kind, m.gains or gains, states, options)
-            self.state["feedback"] = {"kind": kind, "gain": best, "validation": [{"gain": g, "return": r} for g, r in scores]}
+            validation = [{"gain": g, "return": r if math.isfinite(r) else None} for g, r in scores]  # None: no LQR
+            self.state["feedback"] = {"kind": kind, "gain": best, "validation": validation}
             self.state["validation_transitions"] = steps
             self._say(f"{kind} gain {best:g} chosen on {m.validation_episodes} validation episodes")
             self._save()
@@ -179,14 +181,12 @@ class ControlRun:
         trainer = DPCTrainer(policy, self.task, m.horizon, m.batch_size, m.lr, m.continue_fraction, self.cfg.seed)
         if self.run_dir.checkpoint_path.exists():
             trainer.load_state_dict(self.run_dir.load_checkpoint()["dpc"])
+            self._dpc_state(trainer)  # control.json follows the checkpoint (a kill may have come between the two)
         validation = self._validation_states(m.validation_episodes)
-        validation_steps = int(self.state.get("validation_transitions", 0))
 
-        def score(p: Controller) -> float:
-            nonlocal validation_steps
+        def score(p: Controller) -> tuple[float, int]:
             result = play(self.cfg.env, self.cfg.env_kwargs, p, validation)
-            validation_steps += result.control_steps
-            return result.mean
+            return result.mean, result.control_steps
 
         while trainer.steps < m.iterations:
             predicted = trainer.step()
@@ -194,18 +194,23 @@ class ControlRun:
                 value = trainer.validate(score)
                 self._say(f"step {trainer.steps:,d}: predicted {predicted:.2f}, validation {value:.2f}")
                 self.run_dir.save_checkpoint({"dpc": trainer.state_dict()})
-                self.state["validation_transitions"] = validation_steps
-                self.state["dpc"] = {
-                    "steps": trainer.steps,
-                    "scheme_transitions": trainer.scheme_transitions,
-                    "best_step": trainer.best_step,
-                    "best_validation_return": trainer.best_return,
-                    "history": trainer.history,
-                }
-                self._save()
+                self._dpc_state(trainer)
         if trainer.best_state is not None:
             policy.load_state_dict(trainer.best_state)
         return policy
+
+    def _dpc_state(self, trainer: Any) -> None:
+        """DPC's counters and validation history in ``control.json``, from the trainer (its checkpoint's state)."""
+        self.state["validation_transitions"] = trainer.validation_transitions
+        self.state["dpc"] = {
+            "steps": trainer.steps,
+            "scheme_transitions": trainer.scheme_transitions,
+            "skipped_steps": trainer.skipped,
+            "best_step": trainer.best_step,
+            "best_validation_return": trainer.best_return,
+            "history": trainer.history,
+        }
+        self._save()
 
     def _test(self, controller: Controller) -> None:
         states = self.task.protocol_initial_states("test", self.cfg.eval_episodes, self.cfg.eval_seed)
@@ -222,6 +227,7 @@ class ControlRun:
                     "inference_s": result.inference_s,
                     "control_steps": result.control_steps,
                     "scheme_transitions": result.scheme_transitions,
+                    "acted": result.acted,
                 }
             )
             done += len(part)
@@ -237,6 +243,7 @@ class ControlRun:
             sum(c["inference_s"] for c in chunks),
             sum(c["control_steps"] for c in chunks),
             sum(c["scheme_transitions"] for c in chunks),
+            sum(c.get("acted", c["control_steps"]) for c in chunks),
         )
         row = {
             "step": self.t,

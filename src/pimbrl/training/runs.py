@@ -46,6 +46,11 @@ def extend_run(path: str | Path, total_steps: int) -> None:
         for log in (run_dir.evaluations, run_dir.episodes, run_dir.selection):
             log.read()  # a damaged log is reported before the run is changed (resume would refuse it after)
         cfg = read_run_config(run_dir)
+        if cfg.control:
+            raise ConfigError(
+                f"{path} is a {cfg.method.name} run: it has no step budget to raise (its real steps are its "
+                "identification's); start a new run with other settings instead"
+            )
         if total_steps <= cfg.total_steps:
             raise ConfigError(f"--total-steps {total_steps:,d} must be larger than the run's total_steps {cfg.total_steps:,d}")
         longer = dataclasses.replace(cfg, total_steps=int(total_steps))
