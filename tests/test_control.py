@@ -131,6 +131,7 @@ def test_mpc_warm_starts_from_its_shifted_plan_and_counts_its_scheme_steps() -> 
     assert mpc.transitions == 4 * 6 * 2 + 2 * 6 * 2
 
 
+@pytest.mark.slow
 def test_mpc_with_the_known_equation_beats_the_pendulums_floor_on_validation_states() -> None:
     task = task_of(PENDULUM, {})
     states = task.validation_initial_states(6)
@@ -199,6 +200,7 @@ def test_a_feedback_run_writes_the_run_directory_of_any_run(tmp_path) -> None:
     assert control["feedback"]["gain"] in (0.5, 2.0) and len(control["feedback"]["validation"]) == 2
 
 
+@pytest.mark.slow
 def test_an_mpc_run_resumes_its_test_chunks_and_gives_the_uninterrupted_result(tmp_path, monkeypatch) -> None:
     cfg = _cfg(PENDULUM, "mpc", **{"model.horizon": 5, "model.iterations": 2, "model.first_iterations": 3, "model.batch": 2})
     whole = train(create_run(cfg, tmp_path / "whole", progress=False))
@@ -285,6 +287,7 @@ def test_pimbrl_eval_and_extend_of_a_control_run_say_what_it_is(tmp_path, capsys
     assert json.loads((path / "config.json").read_text())["status"] == "finished"
 
 
+@pytest.mark.slow
 def test_compare_and_the_study_report_carry_a_controllers_costs(tmp_path, capsys) -> None:
     run_dir = tmp_path / "cmp"
     args = ["compare", "pendulum", "--methods", "feedback", "--seeds", "1", "--run-dir", str(run_dir), "--jobs", "1"]
