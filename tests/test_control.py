@@ -301,3 +301,12 @@ def test_compare_and_the_study_report_carry_a_controllers_costs(tmp_path, capsys
     out = capsys.readouterr().out
     assert "| validation transitions | inference (ms per control step) |" in out
     assert "| feedback | 1 |" in out and "| 400 |" in out
+
+
+def test_a_ratio_of_median_steps_to_a_controller_that_needs_none_is_undefined_not_a_crash() -> None:
+    from pimbrl.experiments.report import _median_ratio, _ratio_text
+
+    identified = {"median": 600, "at_most": None, "above": None}
+    known = {"median": 0, "at_most": None, "above": None}
+    assert _ratio_text(_median_ratio(identified, known)) == "unknown"
+    assert _median_ratio(known, identified) == {"value": 0.0, "bound": "="}

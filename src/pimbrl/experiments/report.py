@@ -156,7 +156,12 @@ def _steps_poi(spec: StudySpec, sa: dict[str, Any], sb: dict[str, Any], seed: in
 
 
 def _median_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    """The ratio of two censored medians: measured, an upper bound, or unknown."""
+    """The ratio of two censored medians: measured, an upper bound, or unknown (none where the second is 0 steps).
+
+    A controller that needs no real step reaches a threshold at 0: a ratio to it is undefined, and says so.
+    """
+    if b["median"] == 0:
+        return {"value": None, "bound": "unknown"}
     if a["median"] is not None and b["median"] is not None:
         return {"value": a["median"] / b["median"], "bound": "="}
     a_high = a["median"] if a["median"] is not None else a["at_most"]
