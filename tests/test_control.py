@@ -269,7 +269,7 @@ def test_control_methods_refuse_what_they_cannot_do_in_one_line() -> None:
         resolve_config(BURGERS, {"method": "mpc", "env_kwargs": {"nu": 0.013}, "learn.coefficients": {"nu": None}})
     with pytest.raises(ConfigError, match=r"--identify\.\* does nothing without --learn\.coefficients"):
         resolve_config(BURGERS, {"method": "mpc", "identify.steps": 500})
-    with pytest.raises(ConfigError, match="physics prior: .*nu"):
+    with pytest.raises(ConfigError, match=r"physics prior: .*nu"):
         resolve_config(BURGERS, {"method": "mpc", "model.prior": {"nu": -1.0}})
     with pytest.raises(ConfigError, match="energy-lqr is the pendulum's floor"):
         resolve_config(BURGERS, {"method": "feedback", "model.kind": "energy-lqr"})
