@@ -266,6 +266,7 @@ OWN = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("agent", ["crossq", "redq"])
 def test_a_small_pendulum_run_finishes_and_logs_entropy_and_temperature(agent: str, tmp_path) -> None:
     run = tmp_path / agent

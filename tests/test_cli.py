@@ -28,6 +28,7 @@ def test_simulate_constant_burgers_matches_the_documented_return(capsys, tmp_pat
     assert -21.5 < ret < -19.5
 
 
+@pytest.mark.slow
 def test_feedback_floors_are_far_above_no_control(capsys, tmp_path) -> None:
     """Each system's feedback floor (PDEs: a_i = -gain x the observation under actuator i; Cart-Pole: an LQR;
     the pendulum: energy pumping and an LQR): no learning, no model, and far above zero control."""

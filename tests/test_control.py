@@ -109,6 +109,7 @@ def test_the_gain_is_tuned_on_validation_draws_never_on_test_states(monkeypatch)
 
 
 # ----------------------------------------------------------------------------- MPC
+@pytest.mark.slow
 def test_mpc_plans_each_state_independently_of_its_batch() -> None:
     task = task_of(PENDULUM, {})
     plant = make_plant(task.physics)
@@ -227,6 +228,7 @@ def test_an_mpc_run_resumes_its_test_chunks_and_gives_the_uninterrupted_result(t
     assert len((tmp_path / "cut" / "evaluations.csv").read_text().splitlines()) == 2
 
 
+@pytest.mark.slow
 def test_an_mpc_run_with_a_wrong_prior_identifies_the_coefficient_first_and_counts_those_real_steps(tmp_path) -> None:
     cfg = _cfg(
         PENDULUM,
