@@ -56,6 +56,7 @@ def test_sweep_in_process_and_on_ray_give_the_same_table(tmp_path, capsys) -> No
     assert _results(tmp_path / "ray") == ray
 
 
+@pytest.mark.slow
 def test_an_unreadable_trial_stops_the_sweep_before_it_starts(tmp_path) -> None:
     spec = load_sweep(_sweep_file(tmp_path))
     root = tmp_path / "sweep"

@@ -265,6 +265,7 @@ def test_intervals_are_reproducible_and_contain_their_estimate() -> None:
     assert math.isnan(stats.probability_of_improvement([], [1.0]).value)
 
 
+@pytest.mark.slow
 def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
     spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], seeds=2, comparisons=[["mbrl", "mfrl"]]))
     runs = []
@@ -442,6 +443,7 @@ def test_unfinished_runs_are_left_out_and_make_hypotheses_inconclusive(tmp_path)
     assert report.stats["hypotheses"]["H1 pimbrl/Pendulum-v0 default"]["verdict"] == "inconclusive (runs missing or unfinished)"
 
 
+@pytest.mark.slow
 def test_a_report_leaves_out_runs_of_other_settings(tmp_path) -> None:
     path = _spec(tmp_path)
     record = run_study(load_spec(path), tmp_path / "root", status=False, log=lambda m: None)
@@ -453,6 +455,7 @@ def test_a_report_leaves_out_runs_of_other_settings(tmp_path) -> None:
     assert "Runs left out because their recorded configuration is not the spec's: 1" in study_report(changed, again).markdown
 
 
+@pytest.mark.slow
 def test_a_record_kept_in_the_repository_reports_the_same_twice(tmp_path, capsys) -> None:
     spec_dir = tmp_path / "studies"
     spec_dir.mkdir()
@@ -521,6 +524,7 @@ def test_registration_refuses_runs_made_before_and_specs_changed_after_their_com
         start_study(load_spec(path), tmp_path / "new")
 
 
+@pytest.mark.slow
 def test_the_watchdog_spares_what_the_driver_had_before_it(tmp_path) -> None:
     pid_file = tmp_path / "before.pid"
     driver = textwrap.dedent(
