@@ -7,6 +7,7 @@
 #
 # Usage: benchmarks/agents_pendulum.sh [ROOT]          (runs under ROOT, default runs/bench/agents-pendulum)
 # Environment: SEEDS ("0 1 2"), STEPS (6000), AGENTS ("sac crossq redq"), TIMING (1: also time the updates),
+#              RUN (1; 0: only the tables, of the runs there are),
 #              PIMBRL (.venv/bin/pimbrl), PYTHON (.venv/bin/python), and per agent extra flags
 #              SAC_FLAGS, CROSSQ_FLAGS, REDQ_FLAGS. A finished run is kept (rerun: delete its folder).
 #
@@ -22,6 +23,7 @@ SEEDS=${SEEDS:-"0 1 2"}
 STEPS=${STEPS:-6000}
 AGENTS=${AGENTS:-"sac crossq redq"}
 TIMING=${TIMING:-1}
+RUN=${RUN:-1}
 PIMBRL=${PIMBRL:-.venv/bin/pimbrl}
 PYTHON=${PYTHON:-.venv/bin/python}
 SAC_FLAGS=${SAC_FLAGS:-""}
@@ -29,6 +31,7 @@ CROSSQ_FLAGS=${CROSSQ_FLAGS:-""}
 REDQ_FLAGS=${REDQ_FLAGS:-"--utd 20 --agent.policy-delay 20"}
 
 for agent in $AGENTS; do
+    [ "$RUN" = 1 ] || break
     case $agent in
         sac) extra=$SAC_FLAGS ;;
         crossq) extra=$CROSSQ_FLAGS ;;
