@@ -27,7 +27,7 @@ import torch
 
 from ..buffers import Batch
 from ..config import ConfigError
-from .base import frozen, make_optimizer
+from .base import make_optimizer
 from .config import CrossQConfig
 from .networks import GaussianActor, NormalizedCriticEnsemble
 from .sac import SAC, _ParamHolder
@@ -102,17 +102,6 @@ class CrossQ(SAC):
         self.n_updates += 1
         metrics = {"agent/critic_loss": critic_loss.detach(), "agent/q_mean": q.detach().mean(), "agent/alpha": alpha}
         if self.n_updates % cfg.policy_delay == 0:
-            a, logp = self.actor(batch.obs, generator=self.generator)
-            with frozen(self.critic):  # eval mode: the running statistics, which this step leaves alone
-                actor_loss = (alpha * logp - self.critic(batch.obs, a).min(dim=0).values).mean()
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            self.actor_opt.step()
-            metrics["agent/actor_loss"] = actor_loss.detach()
-            metrics["agent/entropy"] = -logp.detach().mean()
-            if cfg.autotune_alpha:
-                alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
-                self.alpha_opt.zero_grad(set_to_none=True)
-                alpha_loss.backward()
-                self.alpha_opt.step()
+            # the critics stay in eval mode: their running statistics, which this step leaves alone
+            metrics.update(self._actor_and_temperature_step(batch.obs, alpha, lambda qs: qs.min(dim=0).values))
         return metrics

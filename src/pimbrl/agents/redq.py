@@ -23,7 +23,7 @@ from typing import cast
 import torch
 
 from ..buffers import Batch
-from .base import frozen, make_optimizer, polyak_update, target_copy
+from .base import make_optimizer, polyak_update, target_copy
 from .config import REDQConfig
 from .networks import CriticEnsemble, GaussianActor
 from .sac import SAC
@@ -71,17 +71,5 @@ class REDQ(SAC):
         self.n_updates += 1
         metrics = {"agent/critic_loss": critic_loss, "agent/q_mean": q.mean(), "agent/alpha": alpha}
         if self.n_updates % cfg.policy_delay == 0:
-            a, logp = self.actor(batch.obs, generator=self.generator)
-            with frozen(self.critic):
-                actor_loss = (alpha * logp - self.critic(batch.obs, a).mean(dim=0)).mean()
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            self.actor_opt.step()
-            metrics["agent/actor_loss"] = actor_loss.detach()
-            metrics["agent/entropy"] = -logp.detach().mean()
-            if cfg.autotune_alpha:
-                alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
-                self.alpha_opt.zero_grad(set_to_none=True)
-                alpha_loss.backward()
-                self.alpha_opt.step()
+            metrics.update(self._actor_and_temperature_step(batch.obs, alpha, lambda qs: qs.mean(dim=0)))
         return metrics

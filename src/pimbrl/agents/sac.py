@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -79,28 +80,32 @@ class SAC(Agent):
             target = self._td_target(batch, q_next)
         critic_loss, q = self._critic_step(batch, target)
 
-        a, logp = self.actor(batch.obs, generator=self.generator)
+        metrics = {"agent/critic_loss": critic_loss, "agent/q_mean": q.mean(), "agent/alpha": alpha}
+        metrics.update(self._actor_and_temperature_step(batch.obs, alpha, lambda qs: qs.min(dim=0).values))
+        polyak_update(self.critic_targ.parameters(), self.critic.parameters(), cfg.polyak)
+        self.n_updates += 1
+        return metrics
+
+    def _actor_and_temperature_step(
+        self, obs: torch.Tensor, alpha: torch.Tensor, reduce: Callable[[torch.Tensor], torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
+        """One actor step on ``alpha log pi(a|s) - reduce(Q(s, a))``, then one temperature step if it is tuned.
+
+        ``reduce`` turns the critics' stacked values ``(n_critics, B)`` into one value per sample (SAC and
+        CrossQ: their minimum; REDQ: their mean). The critics are frozen for the step.
+        """
+        a, logp = self.actor(obs, generator=self.generator)
         with frozen(self.critic):
-            actor_loss = (alpha * logp - self.critic(batch.obs, a).min(dim=0).values).mean()
+            actor_loss = (alpha * logp - reduce(self.critic(obs, a))).mean()
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_opt.step()
-
-        metrics = {
-            "agent/critic_loss": critic_loss,
-            "agent/actor_loss": actor_loss.detach(),
-            "agent/q_mean": q.mean(),
-            "agent/entropy": -logp.detach().mean(),
-            "agent/alpha": alpha,
-        }
-        if cfg.autotune_alpha:
+        if self.config.autotune_alpha:
             alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
             self.alpha_opt.zero_grad(set_to_none=True)
             alpha_loss.backward()
             self.alpha_opt.step()
-        polyak_update(self.critic_targ.parameters(), self.critic.parameters(), cfg.polyak)
-        self.n_updates += 1
-        return metrics
+        return {"agent/actor_loss": actor_loss.detach(), "agent/entropy": -logp.detach().mean()}
 
 
 class _ParamHolder(torch.nn.Module):
