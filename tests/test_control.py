@@ -132,6 +132,21 @@ def test_mpc_warm_starts_from_its_shifted_plan_and_counts_its_scheme_steps() -> 
     assert mpc.transitions == 4 * 6 * 2 + 2 * 6 * 2
 
 
+def test_mpc_simulates_nothing_past_the_episodes_end_and_plans_as_if_it_did() -> None:
+    task = task_of(PENDULUM, {})
+    plant = make_plant(task.physics)
+    states = task.validation_initial_states(2)
+    near_end = np.full(2, 197, dtype=np.int64)  # 3 steps left of 200
+    cut = GradientMPC(plant, 10, 3, 0.1, 5, 200)
+    action = cut(states, near_end)
+    assert cut.transitions == 3 * 3 * 2  # iterations x the 3 steps left x states
+    # the same plan as an episode long enough to simulate the whole horizon, with the rewards past 200 not counted
+    long = GradientMPC(plant, 10, 3, 0.1, 5, 10_000)
+    long.episode_steps = 200
+    long.span = lambda k0: 10  # type: ignore[method-assign]  # the old objective: simulate on, count nothing
+    np.testing.assert_allclose(action, long(states, near_end), atol=1e-12)
+
+
 @pytest.mark.slow
 def test_mpc_with_the_known_equation_beats_the_pendulums_floor_on_validation_states() -> None:
     task = task_of(PENDULUM, {})

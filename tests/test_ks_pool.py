@@ -64,7 +64,7 @@ def test_pool_is_seeded_and_cached(tmp_path, monkeypatch) -> None:
 
 def test_bad_pool_arguments() -> None:
     with pytest.raises(ValueError, match="split"):
-        ks_initial_state_pool("holdout")  # type: ignore[arg-type]
+        ks_initial_state_pool("heldout")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="n_train"):
         KSPoolConfig(n_train=0)
     with pytest.raises(ValueError, match="initial_states"):

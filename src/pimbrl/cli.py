@@ -639,10 +639,11 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=int, default=None, help="number of test episodes (default: the run's)")
     ev.add_argument(
         "--protocol",
-        choices=("test", "authors"),
+        choices=("test", "validation", "authors"),
         default="test",
-        help="initial states: the run's held-out test states (default), or KS 'authors': the 5 training-pool rows "
-        "0, 49, 99, 149, 199 on which the paper reports its mean return",
+        help="initial states: the run's held-out test states (default), the validation draws, or KS 'authors': the "
+        "5 training-pool rows 0, 49, 99, 149, 199 on which the paper reports its mean return (the holdout pool is "
+        "played only by a run's final evaluation: --holdout-episodes)",
     )
     ev.add_argument(
         "--policy",

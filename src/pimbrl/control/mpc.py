@@ -2,11 +2,12 @@
 
 At every control step, for all states of the batch at once: a plan of ``horizon`` normalised actions is
 improved by ``iterations`` Adam steps on minus the sum of the rewards the scheme predicts over the horizon
-(rewards past the episode's end are not counted); the plan's first action is applied. The next step starts
+(cut at the episode's end: nothing past it is simulated or counted); the plan's first action is applied. The next step starts
 from the plan shifted by one (its last action repeated): the warm start. Each state's plan is its own
 (the loss is a sum over the batch and Adam acts elementwise), so batching changes no decision.
 
-Cost per control step and state: ``iterations x horizon`` scheme steps forward and backward.
+Cost per control step and state: ``iterations x horizon`` scheme steps forward and backward (fewer in the
+episode's last ``horizon`` steps).
 """
 
 from __future__ import annotations
@@ -81,17 +82,21 @@ class GradientMPC(Controller):
                 plan.clamp_(-1.0, 1.0)
                 if bad.any():
                     plan[bad] = before[bad]
-        self.transitions += steps * self.horizon * len(states)
+        self.transitions += steps * self.span(k0) * len(states)
         done = plan.detach()
         self.plan = torch.cat([done[:, 1:], done[:, -1:]], dim=1)  # the warm start of the next step
         return self.plant.physical(done[:, 0]).numpy()
+
+    def span(self, k0: torch.Tensor) -> int:
+        """Control steps simulated from steps ``k0``: the horizon, cut where every episode of the batch has ended."""
+        return max(0, min(self.horizon, self.episode_steps - int(k0.min())))
 
     def planned_return(self, u0: torch.Tensor, k0: torch.Tensor, plan: torch.Tensor) -> torch.Tensor:
         """The scheme's return ``(B,)`` of ``plan`` from ``u0`` at steps ``k0`` (within the episode only)."""
         actions = self.plant.physical(plan)
         u = u0
         total = torch.zeros(len(u0), dtype=u0.dtype)
-        for h in range(self.horizon):
+        for h in range(self.span(k0)):
             k = k0 + h
             u, r = self.plant.step(u, actions[:, h], k)
             total = total + torch.where(k < self.episode_steps, r, torch.zeros_like(r))

@@ -6,6 +6,6 @@ The systems (and their registered ids ``pimbrl/<Name>-v0``) are declared in :mod
 from __future__ import annotations
 
 from .base import PHYSICS_INFO_KEYS, PhysicsEnv, PhysicsVectorEnv
-from .task import VALIDATION_SEED, StepOutcome, Task
+from .task import HOLDOUT_SEED, VALIDATION_SEED, StepOutcome, Task
 
-__all__ = ["PHYSICS_INFO_KEYS", "VALIDATION_SEED", "PhysicsEnv", "PhysicsVectorEnv", "StepOutcome", "Task"]
+__all__ = ["HOLDOUT_SEED", "PHYSICS_INFO_KEYS", "VALIDATION_SEED", "PhysicsEnv", "PhysicsVectorEnv", "StepOutcome", "Task"]

@@ -19,11 +19,14 @@ from gymnasium import spaces
 from ..physics import Physics
 from .render import BLUE, field_frame
 
-__all__ = ["VALIDATION_SEED", "StepOutcome", "Task", "check_bool", "check_finite_number", "check_positive_int"]
+__all__ = ["HOLDOUT_SEED", "VALIDATION_SEED", "StepOutcome", "Task", "check_bool", "check_finite_number", "check_positive_int"]
 
 #: the entropy of the validation draws' seed stream (the ASCII bytes of "pimbrl-validation", truncated to 64
 #: bits): fixed, and no run or evaluation seed (those are below 2**32), so validation draws are no test draws
 VALIDATION_SEED = int.from_bytes(b"pimbrl-validation"[:8], "big")
+#: the held-out draws' seed stream ("pimbrl-holdout"): the fresh test pool of a confirmatory study, which only
+#: the final evaluation of a run reads (``holdout_episodes``); no run, evaluation or validation seed
+HOLDOUT_SEED = int.from_bytes(b"pimbrl-holdout"[:8], "big")
 
 
 def check_finite_number(value: Any, name: str) -> float:
@@ -206,17 +209,31 @@ class Task(ABC):
         """
         return self.sample_initial_states(np.random.default_rng(np.random.SeedSequence(VALIDATION_SEED)), n)
 
+    def holdout_initial_states(self, n: int) -> np.ndarray:
+        """``(n, state_dim)`` float64 initial states of the held-out pool, the same on every call.
+
+        The fresh test pool of a confirmatory study: read once, by the final evaluation of a run
+        (``holdout_episodes``), never by an evaluation during training or a choice of settings. By default
+        ``n`` states drawn by :meth:`sample_initial_states` from a seed stream of their own
+        (:data:`HOLDOUT_SEED`); a task with fixed pools (KS) returns the first ``n`` states of its holdout pool,
+        whose runs are disjoint from the other pools'.
+        """
+        return self.sample_initial_states(np.random.default_rng(np.random.SeedSequence(HOLDOUT_SEED)), n)
+
     def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
         """Initial states of the episodes of an evaluation ``protocol`` (one of :attr:`eval_protocols`).
 
-        ``"test"``: :meth:`test_initial_states` (``n`` required); ``"validation"``:
-        :meth:`validation_initial_states` (``n`` required, ``seed`` unused). Other protocols are defined by
-        the tasks that have them (KS: ``"authors"``); asking another task for one is a ``ValueError``.
+        ``"test"``: :meth:`test_initial_states` (``n`` required); ``"validation"`` and ``"holdout"``:
+        :meth:`validation_initial_states`, :meth:`holdout_initial_states` (``n`` required, ``seed`` unused).
+        Other protocols are defined by the tasks that have them (KS: ``"authors"``); asking another task for
+        one is a ``ValueError``.
         """
-        if protocol in ("test", "validation"):
+        if protocol in ("test", "validation", "holdout"):
             if n is None:
                 raise ValueError(f"the {protocol!r} evaluation protocol needs a number of episodes")
-            return self.test_initial_states(n, seed) if protocol == "test" else self.validation_initial_states(n)
+            if protocol == "test":
+                return self.test_initial_states(n, seed)
+            return self.validation_initial_states(n) if protocol == "validation" else self.holdout_initial_states(n)
         raise ValueError(
             f"evaluation protocol {protocol!r} is not defined for {type(self).__name__}; "
             f"choose from {', '.join(repr(p) for p in self.eval_protocols)}"
@@ -224,5 +241,5 @@ class Task(ABC):
 
     @property
     def eval_protocols(self) -> tuple[str, ...]:
-        """The evaluation protocols this task defines (``"test"`` and ``"validation"``, for every task)."""
-        return ("test", "validation")
+        """The evaluation protocols this task defines (``"test"``, ``"validation"`` and ``"holdout"``, for every task)."""
+        return ("test", "validation", "holdout")

@@ -79,6 +79,13 @@ def steps_to(run: dict[str, Any], threshold: float) -> int | None:
 
 
 def _outcome(spec: StudySpec, run: dict[str, Any]) -> float:
+    if spec.outcome == "holdout":  # a finished run of a holdout study has played it: a missing one is an error
+        if run.get("holdout_return") is None:
+            raise ValueError(
+                f"{spec.name}: run {run.get('path')} has no holdout evaluation; a study whose outcome is holdout needs "
+                "holdout_episodes in its overrides (resume the run to play it)"
+            )
+        return float(run["holdout_return"])
     if spec.outcome == "selected" and run.get("selected_return") is not None:
         return float(run["selected_return"])
     return float(run["final_return"])

@@ -16,7 +16,8 @@ writes its tables, figures and hypothesis verdicts from that record. A spec::
     overrides: {total_steps: 3000}      # every run they apply to (an override applying to none is an error)
     grid: {imagine.rollout_length: [3, 8]}   # every combination is one setting of every arm
     thresholds: [-11]                   # returns the report counts steps to (default: each system's)
-    outcome: final                      # a run's result: its last evaluation (final) or its selected policy
+    outcome: final                      # a run's result: its last evaluation (final), its selected policy, or
+    #                                     the final policy on the holdout pool (holdout: needs holdout_episodes)
     statistics: {confidence: 0.95, reps: 10000}
     comparisons: [[pimbrl, mbrl], [pimbrl, mfrl]]
     hypotheses:
@@ -68,7 +69,7 @@ __all__ = [
 #: what a study is: confirmatory only through the registration mechanics, everything else exploratory
 KINDS = ("exploratory", "confirmatory")
 #: a run's result: the return of its last evaluation, or of the policy its model-based selection kept
-OUTCOMES = ("final", "selected")
+OUTCOMES = ("final", "selected", "holdout")
 #: what a hypothesis compares: the final (or selected) return, or the real steps to a threshold
 METRICS = ("final_return", "steps_to_threshold")
 #: the formats of records made before the study engine (pimbrl.experiments.legacy_records)
@@ -441,6 +442,14 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
             raise ConfigError("statistics: confidence must be in [0.5, 1) and reps in [100, 1,000,000]")
     except ConfigError as exc:
         raise _fail(where, str(exc)) from None
+    if outcome == "holdout" and record is None:
+        unset = [a.name for a in arms if not (a.overrides.get("holdout_episodes") or overrides.get("holdout_episodes"))]
+        if unset:
+            raise _fail(
+                where,
+                f"'outcome: holdout' needs holdout_episodes > 0 in the overrides (the holdout pool's episodes each run's "
+                f"final policy plays); arm(s) {', '.join(unset)} have none",
+            )
     layout = data.get("layout", "auto")
     if layout not in ("auto", "compact", "full"):
         raise _fail(where, f"'layout' must be auto, compact or full, got {layout!r}")

@@ -302,10 +302,10 @@ class KuramotoSivashinsky(SemilinearPDE):
 
 
 _POOL_VERSION = 1
-Split = Literal["train", "validation", "test"]
+Split = Literal["train", "validation", "test", "holdout"]
 #: each split's seed stream (spawn key of the pool seed): the train and test keys are those of every earlier
-#: release, so their pools are unchanged by the validation split's addition
-_SPLIT_KEYS: dict[str, int] = {"train": 0, "test": 1, "validation": 2}
+#: release, so their pools are unchanged by the validation and holdout splits' additions
+_SPLIT_KEYS: dict[str, int] = {"train": 0, "test": 1, "validation": 2, "holdout": 3}
 
 
 #: the memory a pool generator's batch of trajectories may take
@@ -320,6 +320,8 @@ class KSPoolConfig:
     n_test: int = 200
     #: states of the validation pool, which decisions during training read (never the test pool)
     n_validation: int = 50
+    #: states of the holdout pool, the fresh test pool only a run's final evaluation reads (confirmatory studies)
+    n_holdout: int = 200
     seed: int = 0
     burn_in: int = 40
     spacing: int = 20
@@ -341,12 +343,29 @@ class KSPoolConfig:
                 raise TypeError(f"KSPoolConfig.{f.name} must be an integer, got {value!r}")
             elif value < 0:
                 raise ValueError(f"KSPoolConfig.{f.name} must be >= 0, got {value!r}")
-        for name in ("n_train", "n_test", "n_validation", "spacing", "per_run", "max_steps", "episode_steps", "batch"):
+        for name in (
+            "n_train",
+            "n_test",
+            "n_validation",
+            "n_holdout",
+            "spacing",
+            "per_run",
+            "max_steps",
+            "episode_steps",
+            "batch",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"KSPoolConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.burn_in + self.episode_steps + self.margin >= self.max_steps:
             raise ValueError("KSPoolConfig: max_steps must exceed burn_in + episode_steps + margin")
-        for name, most in (("n_train", 10**5), ("n_test", 10**5), ("n_validation", 10**5), ("batch", 4096), ("max_steps", 10**5)):
+        for name, most in (
+            ("n_train", 10**5),
+            ("n_test", 10**5),
+            ("n_validation", 10**5),
+            ("n_holdout", 10**5),
+            ("batch", 4096),
+            ("max_steps", 10**5),
+        ):
             if getattr(self, name) > most:
                 raise ValueError(f"KSPoolConfig.{name} must be at most {most:,d}, got {getattr(self, name):,d}")
         trajectory_bytes = (self.max_steps + 1) * self.batch * 68 * 8  # the batch's states and reward terms
@@ -427,7 +446,7 @@ def _generate_split(physics: KuramotoSivashinsky, cfg: KSPoolConfig, split: Spli
 
 def split_size(cfg: KSPoolConfig, split: str) -> int:
     """The number of states of the pool ``split`` under ``cfg``."""
-    return {"train": cfg.n_train, "validation": cfg.n_validation, "test": cfg.n_test}[split]
+    return {"train": cfg.n_train, "validation": cfg.n_validation, "test": cfg.n_test, "holdout": cfg.n_holdout}[split]
 
 
 def _cache_key(physics: KuramotoSivashinsky, cfg: KSPoolConfig) -> str:
@@ -440,7 +459,9 @@ def _cache_key(physics: KuramotoSivashinsky, cfg: KSPoolConfig) -> str:
         "substeps": physics.substeps,
         "kernel": GENERATOR_VERSION,
     }
-    blob = json.dumps({"v": _POOL_VERSION, "numerics": numerics, "cfg": asdict(cfg)}, sort_keys=True)
+    # the holdout pool's size is in its file name instead: its addition leaves every earlier cache valid
+    settings = {k: v for k, v in asdict(cfg).items() if k != "n_holdout"}
+    blob = json.dumps({"v": _POOL_VERSION, "numerics": numerics, "cfg": settings}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -453,9 +474,9 @@ def ks_initial_state_pool(
     physics: KuramotoSivashinsky | None = None,
     verbose: bool = True,
 ) -> KSPool:
-    """The KS initial-state pool ``split`` ("train", "validation" or "test"), generated once and cached on disk."""
+    """The KS initial-state pool ``split`` ("train", "validation", "test" or "holdout"), generated once and cached on disk."""
     if split not in _SPLIT_KEYS:
-        raise ValueError(f"split must be 'train', 'validation' or 'test', got {split!r}")
+        raise ValueError(f"split must be 'train', 'validation', 'test' or 'holdout', got {split!r}")
     cfg = config or KSPoolConfig()
     phys = physics or KuramotoSivashinsky()
     key = _cache_key(phys, cfg)
@@ -466,7 +487,7 @@ def ks_initial_state_pool(
         cacheable = private_directory(directory, "KS pools (the KS pool cache)")
     except OSError:
         cacheable = False
-    path = directory / f"ks_pool_{key}_{split}.npz"
+    path = directory / (f"ks_pool_{key}_holdout{cfg.n_holdout}.npz" if split == "holdout" else f"ks_pool_{key}_{split}.npz")
     n_target = split_size(cfg, split)
     pool = _load_cached(path, n_target, phys.n) if cacheable else None
     if pool is None:
@@ -630,8 +651,8 @@ class KSTask(Task):
 
     @property
     def eval_protocols(self) -> tuple[str, ...]:
-        """``"test"`` (the held-out test pool), ``"validation"`` and ``"authors"`` (5 fixed training states)."""
-        return ("test", "validation", "authors")
+        """``"test"`` (the test pool), ``"validation"``, ``"holdout"`` and ``"authors"`` (5 fixed training states)."""
+        return ("test", "validation", "holdout", "authors")
 
     def validation_initial_states(self, n: int) -> np.ndarray:
         """The first ``n`` states of the validation pool of :attr:`pool_config`, in pool order.
@@ -645,6 +666,20 @@ class KSTask(Task):
                 "(raise KSPoolConfig.n_validation through pool_config, or ask for fewer validation episodes)"
             )
         return ks_initial_state_pool("validation", self.pool_config).states[:n].copy()
+
+    def holdout_initial_states(self, n: int) -> np.ndarray:
+        """The first ``n`` states of the holdout pool of :attr:`pool_config`, in pool order.
+
+        The holdout pool comes from runs disjoint from the other pools' (its own seed stream); only the final
+        evaluation of a run reads it (``holdout_episodes``).
+        """
+        size = (self.pool_config or KSPoolConfig()).n_holdout
+        if not 0 <= n <= size:
+            raise ValueError(
+                f"{n} KS holdout states requested, but the holdout pool holds {size} "
+                "(raise KSPoolConfig.n_holdout through pool_config, or ask for fewer holdout episodes)"
+            )
+        return ks_initial_state_pool("holdout", self.pool_config).states[:n].copy()
 
     def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
         """``"test"``: the first ``n`` test-pool states; ``"authors"``: rows :data:`AUTHORS_EVAL_ROWS` of the training pool.

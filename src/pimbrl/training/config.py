@@ -98,6 +98,9 @@ __all__ = [
 
 #: the policies of a run that can be evaluated: the checkpoint's latest, or the one policy selection kept
 POLICIES = ("latest", "selected")
+#: the draws the evaluations during training play (``eval_protocol``): the test pool, or the validation draws
+#: (a tuning study, whose choices must read no test state)
+EVAL_PROTOCOLS = ("test", "validation")
 #: where the networks run (``auto``: CUDA where torch sees a GPU, else the CPU; the project never needs one)
 DEVICES = ("cpu", "cuda", "auto")
 
@@ -149,6 +152,18 @@ class TrainConfig:
     eval_episodes: int = param(100, "test episodes per evaluation (the paper: 100; 200 for KS)", [positive(), at_most(10_000)])
     eval_seed: int = param(
         2021, "seed of the held-out test initial states (KS uses its test pool)", [non_negative(), at_most(MAX_SEED)]
+    )
+    eval_protocol: str = param(
+        "test",
+        "the draws the evaluations during training play: test (the test pool), or validation (a tuning study: "
+        "its choices read no test state)",
+        one_of(*EVAL_PROTOCOLS),
+    )
+    holdout_episodes: int = param(
+        0,
+        "episodes of the holdout pool (fresh draws no evaluation during training plays) the final policy plays "
+        "once, at the end, into holdout.json (a confirmatory study's outcome; 0: none)",
+        [non_negative(), at_most(10_000)],
     )
     threshold: float | None = param(None, "evaluation return that counts as solved (steps-to-threshold)")
     checkpoint_every: int = param(
@@ -288,7 +303,9 @@ def setting_type(path: str) -> Any:
 
 
 #: the run settings a control method (feedback, mpc, dpc) reads: it trains no agent and keeps no replay
-CONTROL_RUN_FIELDS = frozenset({"seed", "eval_episodes", "eval_seed", "threshold", "threads", "env_kwargs"})
+CONTROL_RUN_FIELDS = frozenset(
+    {"seed", "eval_episodes", "eval_seed", "eval_protocol", "holdout_episodes", "threshold", "threads", "env_kwargs"}
+)
 
 
 def has_setting(method: str, agent: str, path: str) -> bool:

@@ -9,8 +9,10 @@ killed run resumes at the stage it was in):
 2. **tune** (feedback): the gain with the best mean return on the validation draws;
    **train** (dpc): the policy through the scheme, the best on the validation draws kept
    (``checkpoints/latest.pt`` at every validation);
-3. **test**: the controller on the test states, in chunks of ``batch`` episodes (mpc), each chunk's returns
-   saved as it ends.
+3. **test**: the controller on the test states (``eval_protocol``: or the validation draws, in a tuning
+   study), in chunks of ``batch`` episodes (mpc), each chunk's returns saved as it ends;
+4. **holdout** (``holdout_episodes``): the same on the holdout pool, into ``holdout.json``
+   (:mod:`.holdout`).
 
 The outcome is one row of ``evaluations.csv`` at the real steps used, and the summary in ``config.json``:
 real transitions, scheme transitions (MPC's planning, DPC's training rollouts), validation transitions
@@ -35,6 +37,7 @@ from ..control.feedback import declared_feedback, make_feedback, tune_gain
 from ..envs import Task
 from ..fileio import MAX_JSON_BYTES, read_below, strict_json
 from .config import TrainConfig
+from .holdout import read_holdout, write_holdout
 from .methods import DPC, MPC, Feedback
 from .rundir import RunDirectory, steps_to_threshold
 from .summary import RunSummary
@@ -102,6 +105,11 @@ class ControlRun:
             if not self.finished:
                 controller = self._controller()
                 self._test(controller)
+                if self.cfg.holdout_episodes and read_holdout(self.run_dir, self.t) is None:
+                    result = self._play_pool(controller, "holdout", self.cfg.holdout_episodes)
+                    write_holdout(self.run_dir, self.t, result.returns, result.lengths)
+                self.state["done"] = True
+                self._save()
             return self._finish()
         finally:
             self.run_dir.close()
@@ -212,10 +220,12 @@ class ControlRun:
         }
         self._save()
 
-    def _test(self, controller: Controller) -> None:
-        states = self.task.protocol_initial_states("test", self.cfg.eval_episodes, self.cfg.eval_seed)
+    def _play_pool(self, controller: Controller, protocol: str, episodes: int) -> ControlResult:
+        """``controller`` on the draws of ``protocol``, in resumable chunks of ``model.batch`` (``control.json``)."""
+        states = self.task.protocol_initial_states(protocol, episodes, self.cfg.eval_seed)
         batch = getattr(self.cfg.method, "batch", len(states))
-        chunks: list[dict[str, Any]] = self.state.setdefault("test", {"chunks": []})["chunks"]
+        key = "test" if protocol == self.cfg.eval_protocol else protocol
+        chunks: list[dict[str, Any]] = self.state.setdefault(key, {"chunks": []})["chunks"]
         done = sum(len(c["returns"]) for c in chunks)
         while done < len(states):
             part = states[done : done + batch]
@@ -232,19 +242,23 @@ class ControlRun:
             )
             done += len(part)
             self._say(
-                f"test episodes {done}/{len(states)}: mean return so far {np.mean([r for c in chunks for r in c['returns']]):.3f}"
+                f"{protocol} episodes {done}/{len(states)}: mean return so far "
+                f"{np.mean([r for c in chunks for r in c['returns']]):.3f}"
             )
             self._save()
-        returns = np.array([r for c in chunks for r in c["returns"]])
-        lengths = np.array([n for c in chunks for n in c["lengths"]])
-        result = ControlResult(
-            returns,
-            lengths,
+        return ControlResult(
+            np.array([r for c in chunks for r in c["returns"]]),
+            np.array([n for c in chunks for n in c["lengths"]]),
             sum(c["inference_s"] for c in chunks),
             sum(c["control_steps"] for c in chunks),
             sum(c["scheme_transitions"] for c in chunks),
             sum(c.get("acted", c["control_steps"]) for c in chunks),
         )
+
+    def _test(self, controller: Controller) -> None:
+        """The evaluation (``eval_protocol``'s draws, the test pool by default): its row of ``evaluations.csv``."""
+        result = self._play_pool(controller, self.cfg.eval_protocol, self.cfg.eval_episodes)
+        returns, lengths = result.returns, result.lengths
         row = {
             "step": self.t,
             "return_mean": result.mean,
@@ -259,7 +273,6 @@ class ControlRun:
         self.run_dir.evaluations.truncate_after(-1)  # one row: a resumed run writes it again
         self.run_dir.evaluations.append(row)
         self.state["inference_s_per_step"] = result.inference_s_per_step
-        self.state["done"] = True
         self._save()
         cost = result.inference_s_per_step * 1e3
         self._say(f"test return {result.mean:.3f} over {len(returns)} episodes; {cost:.3f} ms per control step")
@@ -272,8 +285,9 @@ class ControlRun:
         rows = self.run_dir.evaluations.read()
         final = float(rows[-1]["return_mean"]) if rows else None
         scheme = int(self.state.get("dpc", {}).get("scheme_transitions", 0)) + sum(
-            int(c["scheme_transitions"]) for c in self.state.get("test", {}).get("chunks", [])
+            int(c["scheme_transitions"]) for pool in ("test", "holdout") for c in self.state.get(pool, {}).get("chunks", [])
         )
+        holdout = read_holdout(self.run_dir, self.t) if self.cfg.holdout_episodes else None
         summary = RunSummary(
             steps=self.t,
             updates=self._updates(),
@@ -286,6 +300,8 @@ class ControlRun:
             scheme_transitions=scheme,
             validation_transitions=int(self.state.get("validation_transitions", 0)),
             inference_s_per_step=self.state.get("inference_s_per_step"),
+            holdout_return_mean=None if holdout is None else float(holdout["return_mean"]),
+            holdout_episodes=0 if holdout is None else int(holdout["episodes"]),
         )
         if self.run_dir.status != "finished":
             self.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))

@@ -4,11 +4,13 @@
   states ``Task.test_initial_states(episodes, eval_seed)`` - the first states of the KS test pool
   (disjoint from the training pool), or states drawn once with ``eval_seed`` for the others;
 * other Gymnasium environments: episodes one after another, reset with seeds ``seed + i`` (``eval_seed``
-  for the test episodes, :data:`~pimbrl.envs.VALIDATION_SEED` for the validation episodes).
+  for the test episodes, :data:`~pimbrl.envs.VALIDATION_SEED` for the validation episodes and
+  :data:`~pimbrl.envs.HOLDOUT_SEED` for the holdout episodes, whatever seed is passed).
 
 The ``"validation"`` protocol runs the validation draws (:meth:`pimbrl.envs.task.Task.validation_initial_states`),
 which the decisions made during training read (the switch to model-free fine-tuning); the test states decide
-nothing.
+nothing. The ``"holdout"`` protocol runs the holdout draws (:meth:`pimbrl.envs.task.Task.holdout_initial_states`),
+a fresh test pool that only a run's final evaluation plays (``holdout_episodes``: a confirmatory study's outcome).
 
 A pimbrl task may define further protocols (``protocol=``): KS has ``"authors"``, the 5 fixed training
 states the paper's mean return is reported on (:meth:`pimbrl.systems.ks.KSTask.protocol_initial_states`).
@@ -28,7 +30,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from ..envs import PhysicsEnv
+from ..envs import HOLDOUT_SEED, VALIDATION_SEED, PhysicsEnv
 from ..spaces import ActionAdapter
 
 __all__ = ["EvalResult", "Evaluator"]
@@ -90,11 +92,13 @@ class Evaluator:
         self.adapter = ActionAdapter(probe.action_space)
         base = probe.unwrapped
         self.native = isinstance(base, PhysicsEnv)
-        if not self.native and protocol not in ("test", "validation"):
+        if not self.native and protocol not in ("test", "validation", "holdout"):
             raise ValueError(
                 f"evaluation protocol {protocol!r} is not defined for {env_id}: environments outside pimbrl have only "
-                "'test' and 'validation'"
+                "'test', 'validation' and 'holdout'"
             )
+        if not self.native:  # the draws are the reset seeds: each pool has its own stream
+            self.seed = {"validation": VALIDATION_SEED, "holdout": HOLDOUT_SEED}.get(protocol, self.seed)
         if isinstance(base, PhysicsEnv):
             self.initial_states = base.task.protocol_initial_states(protocol, episodes, self.seed)
             self.episodes = len(self.initial_states)

@@ -44,6 +44,7 @@ from .config import TrainConfig, config_from_dict, config_to_dict
 from .control_run import ControlRun
 from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator
+from .holdout import read_holdout, write_holdout
 from .logger import RunLogger
 from .rundir import CheckpointError, RunDirectory, package_versions, provenance, steps_to_threshold
 from .selection import PolicySelector
@@ -153,7 +154,7 @@ class Run:
     def evaluator_for(self, protocol: str = "test", episodes: int | None = None) -> Evaluator:
         """An evaluator of this run's policy: its own for its test states, else one for ``protocol``/``episodes``."""
         cfg = self.cfg
-        if protocol == "test" and episodes in (None, cfg.eval_episodes):
+        if protocol == cfg.eval_protocol and episodes in (None, cfg.eval_episodes):
             return self.evaluator
         return Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed, protocol=protocol)
 
@@ -215,6 +216,7 @@ class Run:
         rows = self.run_dir.evaluations.read()
         returns = [float(r["return_mean"]) for r in rows]
         selector = self.selector
+        holdout = read_holdout(self.run_dir, self.t) if self.cfg.holdout_episodes else None
         return RunSummary(
             steps=self.t,
             updates=self.agent.n_updates,
@@ -229,6 +231,8 @@ class Run:
             scheme_transitions=0 if self.model is None else self.model.scheme_transitions,
             validation_transitions=0 if self.model is None else self.model.validation_transitions,
             inference_s_per_step=self.inference_s_per_step,
+            holdout_return_mean=None if holdout is None else float(holdout["return_mean"]),
+            holdout_episodes=0 if holdout is None else int(holdout["episodes"]),
         )
 
     def lr_scale(self) -> float | None:
@@ -353,8 +357,25 @@ def _evaluate(run: Run) -> None:
             run.run_dir.selection.append(selector.observe(run.t, run.agent, result.mean))
 
 
+def _evaluate_holdout(run: Run) -> None:
+    """The final policy, once, on the holdout pool (``holdout_episodes``), into ``holdout.json``.
+
+    Played again only where the file belongs to an earlier final policy (the run was extended since).
+    """
+    episodes = run.cfg.holdout_episodes
+    if not episodes or read_holdout(run.run_dir, run.t) is not None:
+        return
+    with run.logger.timed("evaluate"):
+        result = run.evaluator_for("holdout", episodes).run(lambda o: run.agent.act(o, deterministic=True))
+    write_holdout(run.run_dir, run.t, result.returns, result.lengths)
+
+
 def _finish(run: Run) -> RunSummary:
-    """Mark the run finished with its summary in ``config.json`` (once; also repairs a missing mark)."""
+    """The holdout evaluation where due, then the run marked finished with its summary in ``config.json``.
+
+    Once; it also repairs a missing mark (a run killed between its final checkpoint and the mark).
+    """
+    _evaluate_holdout(run)
     summary = run.summary()
     if run.run_dir.status != "finished":
         run.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))
@@ -417,7 +438,7 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
     if model is not None:
         columns += model.metric_names()
     logger = RunLogger(run_dir, columns, PHASES, cfg.threshold, tensorboard=cfg.tensorboard, progress=progress)
-    evaluator = Evaluator(cfg.env, cfg.env_kwargs, cfg.eval_episodes, cfg.eval_seed)
+    evaluator = Evaluator(cfg.env, cfg.env_kwargs, cfg.eval_episodes, cfg.eval_seed, protocol=cfg.eval_protocol)
     return Run(cfg, run_dir, streams, collector, real, agent, model, evaluator, logger, UpdateSchedule(cfg.update_every, cfg.utd))
 
 

@@ -32,3 +32,6 @@ class RunSummary:
     #: wall seconds per control step and state of acting at the last test evaluation: one batched network call
     #: for an RL policy, an optimisation for MPC (``None``: not measured)
     inference_s_per_step: float | None = None
+    #: the final policy's mean return on the holdout pool (``holdout_episodes``; ``None``: not played)
+    holdout_return_mean: float | None = None
+    holdout_episodes: int = 0

@@ -1,0 +1,125 @@
+"""The holdout pool (fresh draws only a run's final evaluation plays) and evaluations on validation draws."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pimbrl.config import ConfigError
+from pimbrl.control.base import task_of
+from pimbrl.envs import HOLDOUT_SEED, VALIDATION_SEED
+from pimbrl.experiments.report import _outcome
+from pimbrl.experiments.spec import parse_spec
+from pimbrl.fileio import UnsafeFileError
+from pimbrl.training import create_run, resolve_config, train
+from pimbrl.training.evaluation import Evaluator
+from pimbrl.training.holdout import read_holdout
+from pimbrl.training.loop import open_run
+from pimbrl.training.runs import extend_run
+
+PENDULUM = "pimbrl/Pendulum-v0"
+TINY = {"total_steps": 300, "warmup_steps": 100, "update_after": 100, "update_every": 50, "eval_every": 150,
+        "eval_episodes": 3, "checkpoint_every": 100, "agent.hidden": (16, 16), "agent.batch_size": 16}  # fmt: skip
+
+
+def _returns(path) -> list[str]:
+    rows = (path / "evaluations.csv").read_text().splitlines()
+    column = rows[0].split(",").index("return_mean")
+    return [row.split(",")[column] for row in rows[1:]]
+
+
+@pytest.mark.parametrize("env", [PENDULUM, "pimbrl/Burgers-v0", "pimbrl/CartPole-v0"])
+def test_holdout_draws_are_fixed_and_none_is_a_test_or_validation_draw(env: str) -> None:
+    task = task_of(env, {})
+    holdout = task.protocol_initial_states("holdout", 20, seed=2021)
+    assert np.array_equal(holdout, task.holdout_initial_states(20))  # the same on every call, whatever the seed
+    others = np.concatenate([task.test_initial_states(20, 2021), task.validation_initial_states(20)])
+    distance = np.abs(holdout[:, None, :] - others[None, :, :]).max(-1)
+    assert distance.min() > 1e-6
+    assert "holdout" in task.eval_protocols
+
+
+@pytest.mark.slow  # generates the KS holdout pool where it is not cached (about a minute)
+def test_the_ks_holdout_pool_comes_from_runs_of_its_own() -> None:
+    task = task_of("pimbrl/KuramotoSivashinsky-v0", {})
+    holdout = task.holdout_initial_states(200)
+    for other in (task.test_initial_states(200, 0), task.validation_initial_states(50)):
+        assert np.abs(holdout[:, None, :] - other[None, :, :]).max(-1).min() > 1e-3
+    with pytest.raises(ValueError, match="holdout pool holds 200"):
+        task.holdout_initial_states(201)
+
+
+def test_a_gymnasium_env_plays_its_holdout_and_validation_episodes_from_their_own_seed_streams() -> None:
+    assert Evaluator("Pendulum-v1", {}, 2, 2021, protocol="holdout").seed == HOLDOUT_SEED
+    assert Evaluator("Pendulum-v1", {}, 2, 2021, protocol="validation").seed == VALIDATION_SEED
+    assert Evaluator("Pendulum-v1", {}, 2, 2021).seed == 2021
+
+
+def test_a_run_plays_the_holdout_pool_once_at_its_end_and_nothing_before_reads_it(tmp_path) -> None:
+    plain = train(create_run(resolve_config(PENDULUM, TINY), tmp_path / "plain", progress=False))
+    path = tmp_path / "holdout"
+    summary = train(create_run(resolve_config(PENDULUM, {**TINY, "holdout_episodes": 4}), path, progress=False))
+    # the holdout changes nothing the run does before its end: the same test returns at every evaluation
+    assert _returns(path) == _returns(tmp_path / "plain") and summary.final_return_mean == plain.final_return_mean
+    holdout = json.loads((path / "holdout.json").read_text())
+    assert holdout["step"] == 300 and holdout["episodes"] == 4 and len(holdout["returns"]) == 4
+    assert summary.holdout_return_mean == pytest.approx(np.mean(holdout["returns"]))
+    assert summary.holdout_return_mean != summary.final_return_mean  # other states than the test pool's
+    saved = json.loads((path / "config.json").read_text())["summary"]
+    assert saved["holdout_return_mean"] == summary.holdout_return_mean and saved["holdout_episodes"] == 4
+    assert plain.holdout_return_mean is None and not (tmp_path / "plain" / "holdout.json").exists()
+
+    # reopening the finished run does not play the pool again; extending it plays it for the new final policy
+    before = (path / "holdout.json").stat().st_mtime_ns
+    open_run(path, progress=False).run_dir.close()
+    assert (path / "holdout.json").stat().st_mtime_ns == before
+    extend_run(path, 400)
+    extended = train(open_run(path, progress=False))
+    assert json.loads((path / "holdout.json").read_text())["step"] == 400
+    assert extended.holdout_return_mean == pytest.approx(json.loads((path / "holdout.json").read_text())["return_mean"])
+
+
+def test_a_holdout_file_pimbrl_did_not_write_is_refused_in_one_line(tmp_path) -> None:
+    path = tmp_path / "r"
+    train(create_run(resolve_config(PENDULUM, {**TINY, "holdout_episodes": 2}), path, progress=False))
+    payload = json.loads((path / "holdout.json").read_text())
+    payload["return_mean"] = 0.0  # a mean its returns do not give
+    (path / "holdout.json").write_text(json.dumps(payload))
+    run = open_run(path, progress=False, inspect_only=True)
+    try:
+        with pytest.raises(UnsafeFileError, match="not a holdout evaluation pimbrl wrote"):
+            read_holdout(run.run_dir)
+    finally:
+        run.run_dir.close()
+
+
+def test_evaluations_on_the_validation_draws_read_no_test_state(tmp_path) -> None:
+    cfg = resolve_config(PENDULUM, {**TINY, "eval_protocol": "validation"})
+    run = create_run(cfg, tmp_path / "tune", progress=False)
+    task = task_of(PENDULUM, {})
+    assert np.array_equal(run.evaluator.initial_states, task.validation_initial_states(3))
+    train(run)
+    with pytest.raises(ConfigError, match="eval_protocol"):
+        resolve_config(PENDULUM, {"eval_protocol": "holdout"})  # the holdout pool is the final evaluation's alone
+
+
+def test_a_control_run_plays_the_holdout_pool_after_its_test_states(tmp_path) -> None:
+    cfg = resolve_config(PENDULUM, {"method": "feedback", "eval_episodes": 4, "holdout_episodes": 5, "model.gains": (1.0,)})
+    summary = train(create_run(cfg, tmp_path / "fb", progress=False))
+    holdout = json.loads((tmp_path / "fb" / "holdout.json").read_text())
+    assert holdout["episodes"] == 5 and summary.holdout_return_mean == pytest.approx(holdout["return_mean"])
+    control = json.loads((tmp_path / "fb" / "control.json").read_text())
+    assert [len(c["returns"]) for c in control["test"]["chunks"]] == [4]
+    assert [len(c["returns"]) for c in control["holdout"]["chunks"]] == [5]
+
+
+def test_a_study_judged_on_the_holdout_pool_needs_holdout_episodes_and_reads_only_them(tmp_path) -> None:
+    spec = {"name": "h", "systems": ["pendulum"], "seeds": 1, "methods": ["mfrl"], "outcome": "holdout"}
+    with pytest.raises(ConfigError, match="needs holdout_episodes"):
+        parse_spec(spec, where="h.yaml")
+    parsed = parse_spec({**spec, "overrides": {"holdout_episodes": 10}}, where="h.yaml")
+    assert _outcome(parsed, {"final_return": -100.0, "holdout_return": -150.0}) == -150.0
+    with pytest.raises(ValueError, match="has no holdout evaluation"):
+        _outcome(parsed, {"final_return": -100.0, "holdout_return": None, "path": "x"})
