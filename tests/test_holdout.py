@@ -57,6 +57,7 @@ def test_a_gymnasium_env_plays_its_holdout_and_validation_episodes_from_their_ow
     assert Evaluator("Pendulum-v1", {}, 2, 2021).seed == 2021
 
 
+@pytest.mark.slow  # three short runs
 def test_a_run_plays_the_holdout_pool_once_at_its_end_and_nothing_before_reads_it(tmp_path) -> None:
     plain = train(create_run(resolve_config(PENDULUM, TINY), tmp_path / "plain", progress=False))
     path = tmp_path / "holdout"
@@ -123,3 +124,48 @@ def test_a_study_judged_on_the_holdout_pool_needs_holdout_episodes_and_reads_onl
     assert _outcome(parsed, {"final_return": -100.0, "holdout_return": -150.0}) == -150.0
     with pytest.raises(ValueError, match="has no holdout evaluation"):
         _outcome(parsed, {"final_return": -100.0, "holdout_return": None, "path": "x"})
+
+
+# ---------------------------------------------------------------------------------- tuning studies
+def _tuning_spec(tuning, overrides=None) -> dict:
+    arms = {
+        "mfrl-a": {"method": "mfrl", "overrides": {"agent.actor_lr": 1e-3}},
+        "mfrl-b": {"method": "mfrl", "overrides": {"agent.actor_lr": 3e-4}},
+        "pimbrl-a": {"method": "pimbrl", "overrides": {"physics.weight": 0.01}},
+        "pimbrl-b": {"method": "pimbrl", "overrides": {"physics.weight": 0.1}},
+    }
+    return {"name": "tune", "systems": ["pendulum"], "seeds": 2, "methods": arms, "tuning": tuning,
+            "statistics": {"reps": 200}, "overrides": {"eval_protocol": "validation"} if overrides is None else overrides}  # fmt: skip
+
+
+def test_a_tuning_study_gives_every_method_the_same_budget_on_validation_draws() -> None:
+    spec = parse_spec(_tuning_spec({"mfrl": ["mfrl-a", "mfrl-b"], "pimbrl": ["pimbrl-a", "pimbrl-b"]}), where="t.yaml")
+    assert spec.tuning == {"mfrl": ("mfrl-a", "mfrl-b"), "pimbrl": ("pimbrl-a", "pimbrl-b")}
+    with pytest.raises(ConfigError, match="unequal budgets .mfrl 2, pimbrl 1"):
+        parse_spec(_tuning_spec({"mfrl": ["mfrl-a", "mfrl-b"], "pimbrl": ["pimbrl-a"]}), where="t.yaml")
+    with pytest.raises(ConfigError, match="evaluated on the test draws"):
+        parse_spec(_tuning_spec({"mfrl": ["mfrl-a"], "pimbrl": ["pimbrl-a"]}, overrides={}), where="t.yaml")
+    with pytest.raises(ConfigError, match="candidate of both"):
+        parse_spec(_tuning_spec({"mfrl": ["mfrl-a", "mfrl-b"], "x": ["mfrl-a", "pimbrl-a"]}), where="t.yaml")
+    with pytest.raises(ConfigError, match="not an arm"):
+        parse_spec(_tuning_spec({"mfrl": ["mfrl-c"]}), where="t.yaml")
+
+
+@pytest.mark.slow  # the bootstrap of four arms
+def test_a_tuning_report_names_each_methods_choice_and_none_before_every_candidate_finished() -> None:
+    from pimbrl.experiments.report import study_report
+
+    spec = parse_spec(_tuning_spec({"mfrl": ["mfrl-a", "mfrl-b"], "pimbrl": ["pimbrl-a", "pimbrl-b"]}), where="t.yaml")
+    returns = {"mfrl-a": -300.0, "mfrl-b": -200.0, "pimbrl-a": -150.0, "pimbrl-b": -180.0}
+    runs = []
+    for arm, base in returns.items():
+        for seed in range(2):
+            curve = {"step": [40, 80], "return_mean": [base, base], "return_min": [0, 0], "return_max": [0, 0]}
+            runs.append({"system": "pimbrl/Pendulum-v0", "arm": arm, "setting": "default", "seed": seed, "finished": True,
+                         "steps": 80, "final_return": base + seed, "curve": curve})  # fmt: skip
+    record = {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256}
+    tuning = study_report(spec, record).stats["groups"]["pimbrl/Pendulum-v0 default"]["tuning"]
+    assert tuning["mfrl"]["chosen"] == "mfrl-b" and tuning["pimbrl"]["chosen"] == "pimbrl-a"
+    partial = study_report(spec, {**record, "runs": runs[:-1]})
+    assert partial.stats["groups"]["pimbrl/Pendulum-v0 default"]["tuning"]["pimbrl"]["chosen"] is None
+    assert "not yet: runs missing or unfinished" in partial.markdown

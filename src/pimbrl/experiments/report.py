@@ -229,6 +229,10 @@ def study_report(
         if left_out:
             names = ", ".join(f"{_cell(arm)} {n}" for arm, n in left_out.items())
             lines += ["", f"Unfinished runs, left out of every statistic here: {names}."]
+        if spec.tuning:
+            chosen = _tuning_choices(spec, group)
+            computed["groups"][key]["tuning"] = chosen
+            lines += ["", *_tuning_table(spec, chosen)]
         pairs = [p for p in spec.comparisons if p[0] in group and p[1] in group]
         if pairs:
             lines += ["", _comparison_header(spec, thresholds), _separator(3 + len(thresholds))]
@@ -304,6 +308,36 @@ def study_report(
             "",
         ]
     return Report("\n".join(lines).rstrip() + "\n", computed, figures, label)
+
+
+def _tuning_choices(spec: StudySpec, group: dict[str, Any]) -> dict[str, Any]:
+    """Each method's choice among its candidates: the highest IQM of the outcome (on the validation draws).
+
+    A method whose candidates have not all finished every seed has no choice yet (``chosen`` None): a choice
+    among some of the candidates would not be the budget the spec states.
+    """
+    out: dict[str, Any] = {}
+    for family, candidates in spec.tuning.items():
+        complete = all(c in group and group[c]["finished"] == len(spec.seeds) for c in candidates)
+        scores = {c: group[c]["iqm"]["value"] for c in candidates if c in group}
+        best = max(candidates, key=lambda c: scores.get(c, -math.inf)) if complete else None  # ties: the first listed
+        out[family] = {"candidates": list(candidates), "iqm": scores, "chosen": best}
+    return out
+
+
+def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
+    n = len(next(iter(spec.tuning.values())))
+    lines = [
+        f"Tuning ({n} candidates x {len(spec.seeds)} seeds per method, chosen by the IQM of the {spec.outcome} return on "
+        "the validation draws; no test state was read):",
+        "",
+        "| method | candidates (IQM) | chosen |",
+        _separator(3),
+    ]
+    for family, c in chosen.items():
+        listed = ", ".join(f"{arm} ({c['iqm'][arm]:.4g})" if arm in c["iqm"] else f"{arm} (no runs)" for arm in c["candidates"])
+        lines.append(f"| {_cell(family)} | {_cell(listed)} | {_cell(c['chosen'] or 'not yet: runs missing or unfinished')} |")
+    return lines
 
 
 def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: str, link_base: str | Path | None) -> list[str]:

@@ -23,6 +23,9 @@ writes its tables, figures and hypothesis verdicts from that record. A spec::
     hypotheses:
       H1: {claim: PiMBRL reaches -11 in fewer real steps than MBRL, better: pimbrl, than: mbrl,
            metric: steps_to_threshold, threshold: -11}
+    tuning: {pimbrl: [pimbrl-w0.01, pimbrl-w0.1], mbrl: [mbrl-l3, mbrl-l8]}   # a tuning study: each method's
+    #   candidate arms (as many for every method: equal budgets), chosen by IQM on the validation draws
+    #   (overrides: {eval_protocol: validation}); the report names each method's choice
     plan: 9 runs x 4 min / 2 cores = 18 min   # the compute plan, stated before the first run
     paper: PiMBRL reaches its target after 800 steps, MBRL 1,300   # docs/reproduce.md puts ours beside it
 
@@ -101,6 +104,7 @@ _KEYS = {
     "layout",
     "record",
     "imports",
+    "tuning",
 }
 _ARM_KEYS = {"method", "overrides", "match_updates"}
 _HYPOTHESIS_KEYS = {"claim", "better", "than", "metric", "threshold", "system"}
@@ -175,6 +179,8 @@ class StudySpec:
     record: RecordSource | None = None
     #: modules or files declaring the user's systems (``--import``), relative to the spec's directory
     imports: tuple[str, ...] = ()
+    #: a tuning study's candidates: each method family's arms, as many for every family (equal budgets)
+    tuning: dict[str, tuple[str, ...]] = field(default_factory=dict)
     #: the file it was read from and the SHA-256 of its bytes (empty for a spec built in code)
     path: Path | None = None
     sha256: str = ""
@@ -299,6 +305,39 @@ def _pairs(value: Any, arms: Sequence[str], where: str) -> tuple[tuple[str, str]
                 raise _fail(where, f"'comparisons': {a!r} is not an arm{did_you_mean(str(a), arms)}; arms: {', '.join(arms)}")
         out.append((pair[0], pair[1]))
     return tuple(out)
+
+
+def _tuning(value: Any, arms: Sequence[Arm], overrides: Mapping[str, Any], where: str) -> dict[str, tuple[str, ...]]:
+    """A tuning study's candidates per method family, checked.
+
+    Known arms, each in one family, equal budgets, and every candidate evaluated on the validation draws
+    (a choice must read no test state).
+    """
+    if not value:
+        return {}
+    if not isinstance(value, dict) or any(not isinstance(v, list) or not v for v in value.values()):
+        raise _fail(where, f"'tuning' must map each method to a non-empty list of its candidate arms, got {value!r}")
+    by_name = {a.name: a for a in arms}
+    seen: dict[str, str] = {}
+    for family, candidates in value.items():
+        for arm in candidates:
+            if arm not in by_name:
+                raise _fail(where, f"'tuning': {arm!r} is not an arm{did_you_mean(str(arm), list(by_name))}")
+            if arm in seen:
+                raise _fail(where, f"'tuning': arm {arm} is a candidate of both {seen[arm]} and {family}; give it to one")
+            seen[arm] = str(family)
+            protocol = by_name[arm].overrides.get("eval_protocol", overrides.get("eval_protocol", "test"))
+            if protocol != "validation":
+                raise _fail(
+                    where,
+                    f"'tuning': arm {arm} is evaluated on the {protocol} draws; a tuning study chooses on the validation "
+                    "draws alone: set eval_protocol: validation in the overrides",
+                )
+    sizes = {family: len(candidates) for family, candidates in value.items()}
+    if len(set(sizes.values())) > 1:
+        listed = ", ".join(f"{f} {n}" for f, n in sizes.items())
+        raise _fail(where, f"'tuning': the methods have unequal budgets ({listed} candidates); give each as many")
+    return {str(family): tuple(candidates) for family, candidates in value.items()}
 
 
 def _hypotheses(value: Any, arms: Sequence[str], systems: Sequence[str], where: str) -> tuple[Hypothesis, ...]:
@@ -482,6 +521,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         layout=layout,
         record=record,
         imports=tuple(imports),
+        tuning=_tuning(data.get("tuning"), arms, overrides, where),
         sha256=hashlib.sha256(text.encode()).hexdigest() if text else "",
         text=text,
     )
