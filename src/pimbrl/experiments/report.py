@@ -368,6 +368,19 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
     lines.append(f"- **Runs**: {len(record['runs'])}; CPU: {cpu}; commit: {commit}.")
+    protocols = {arm.overrides.get("eval_protocol", spec.overrides.get("eval_protocol", "test")) for arm in spec.arms}
+    if protocols != {"test"}:
+        on = "every arm" if protocols == {"validation"} else "some arms"
+        lines.append(
+            f"- **Evaluations**: on the validation draws for {on} (eval_protocol: validation): "
+            "its returns are validation returns."
+        )
+    holdout = {arm.overrides.get("holdout_episodes", spec.overrides.get("holdout_episodes", 0)) for arm in spec.arms}
+    if holdout != {0}:
+        lines.append(
+            f"- **Holdout**: each run's final policy played {', '.join(str(h) for h in sorted(holdout))} states of the holdout "
+            "pool once, after its last step (outcome holdout judges by them)."
+        )
     lines.append(
         f"- **Statistics**: outcome = each run's {spec.outcome} evaluation; IQM and mean with {spec.confidence:.0%} "
         f"stratified-bootstrap intervals ({spec.reps:,} resamples, rliable); steps to a threshold: censored medians."
