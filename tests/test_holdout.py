@@ -169,3 +169,82 @@ def test_a_tuning_report_names_each_methods_choice_and_none_before_every_candida
     partial = study_report(spec, {**record, "runs": runs[:-1]})
     assert partial.stats["groups"]["pimbrl/Pendulum-v0 default"]["tuning"]["pimbrl"]["chosen"] is None
     assert "not yet: runs missing or unfinished" in partial.markdown
+
+
+# ---------------------------------------------------------------------------------- review: what must not slip
+def test_a_gymnasium_envs_holdout_seeds_meet_no_test_or_validation_seed() -> None:
+    holdout = Evaluator("Pendulum-v1", {}, 50, 2021, protocol="holdout").reset_seeds
+    validation = Evaluator("Pendulum-v1", {}, 10_000, 2021, protocol="validation").reset_seeds
+    test = Evaluator("Pendulum-v1", {}, 10_000, 2021).reset_seeds
+    assert len(set(holdout)) == 50 and not set(holdout) & (set(validation) | set(test))
+    assert validation[:2] == [VALIDATION_SEED, VALIDATION_SEED + 1] and test[:2] == [2021, 2022]  # as before
+
+
+def test_every_run_of_a_holdout_study_plays_the_holdout_pool() -> None:
+    base = {"name": "h", "systems": ["pendulum"], "seeds": 1, "outcome": "holdout", "overrides": {"holdout_episodes": 10}}
+    arms = {"mfrl": {"method": "mfrl"}, "off": {"method": "mfrl", "overrides": {"holdout_episodes": 0, "utd": 2.0}}}
+    with pytest.raises(ConfigError, match=r"arm\(s\) off have none"):
+        parse_spec({**base, "methods": arms}, where="h.yaml")
+    with pytest.raises(ConfigError, match="have none"):
+        parse_spec({**base, "methods": ["mfrl"], "overrides": {}, "grid": {"holdout_episodes": [0, 10]}}, where="h.yaml")
+    assert parse_spec({**base, "methods": ["mfrl"], "overrides": {}, "grid": {"holdout_episodes": [5, 10]}}, where="h.yaml")
+
+
+def test_a_tuning_study_never_reads_the_holdout_pool() -> None:
+    tuning = {"mfrl": ["mfrl-a", "mfrl-b"], "pimbrl": ["pimbrl-a", "pimbrl-b"]}
+    with pytest.raises(ConfigError, match="outcome: holdout' is refused"):
+        parse_spec({**_tuning_spec(tuning), "outcome": "holdout", "overrides": {"eval_protocol": "validation", "holdout_episodes": 5}},
+                   where="t.yaml")  # fmt: skip
+    with pytest.raises(ConfigError, match="plays the holdout pool"):
+        parse_spec(_tuning_spec(tuning, overrides={"eval_protocol": "validation", "holdout_episodes": 5}), where="t.yaml")
+    with pytest.raises(ConfigError, match="evaluated on the test draws"):
+        parse_spec({**_tuning_spec(tuning), "grid": {"eval_protocol": ["validation", "test"]}, "overrides": {}}, where="t.yaml")
+
+
+def test_a_run_asking_a_finite_pool_for_too_many_states_stops_before_it_starts(tmp_path) -> None:
+    from pimbrl.training.evaluation import check_pool_sizes
+
+    task = task_of("pimbrl/KuramotoSivashinsky-v0", {})
+    with pytest.raises(ConfigError, match="eval_episodes 200: the validation pool holds 50 states"):
+        check_pool_sizes(task, "validation", 200, 0)
+    with pytest.raises(ConfigError, match="holdout_episodes 201: the holdout pool holds 200"):
+        check_pool_sizes(task, "test", 200, 201)
+    check_pool_sizes(task, "test", 200, 200)
+    check_pool_sizes(task_of(PENDULUM, {}), "validation", 5000, 5000)  # drawn without limit
+    cfg = resolve_config("pimbrl/KuramotoSivashinsky-v0", {"method": "feedback", "holdout_episodes": 500})
+    with pytest.raises(ConfigError, match="holdout pool holds 200"):
+        create_run(cfg, tmp_path / "ks", progress=False)
+    assert not (tmp_path / "ks").exists()
+
+
+@pytest.mark.slow  # generates two small KS pools
+def test_the_ks_holdout_pool_of_another_size_is_not_served_from_memory(tmp_path, monkeypatch) -> None:
+    from pimbrl.systems import ks
+
+    monkeypatch.setenv("PIMBRL_CACHE_DIR", str(tmp_path))
+    ks._MEMO.clear()
+    small = ks.KSPoolConfig(n_train=4, n_test=2, n_validation=2, n_holdout=2, batch=8, seed=3)
+    two = ks.ks_initial_state_pool("holdout", small, verbose=False)
+    three = ks.ks_initial_state_pool("holdout", ks.KSPoolConfig(**{**small.__dict__, "n_holdout": 3}), verbose=False)
+    assert len(two.states) == 2 and len(three.states) == 3
+    ks._MEMO.clear()
+
+
+def test_a_missing_holdout_file_is_played_again_and_the_summary_follows(tmp_path) -> None:
+    path = tmp_path / "fb"
+    cfg = resolve_config(PENDULUM, {"method": "feedback", "eval_episodes": 3, "holdout_episodes": 4, "model.gains": (1.0,)})
+    first = train(create_run(cfg, path, progress=False))
+    (path / "holdout.json").unlink()
+    again = train(open_run(path, progress=False))
+    assert again.holdout_return_mean == pytest.approx(first.holdout_return_mean)
+    assert json.loads((path / "config.json").read_text())["summary"]["holdout_return_mean"] == again.holdout_return_mean
+
+
+def test_mpc_with_every_episode_ended_has_nothing_to_plan() -> None:
+    from pimbrl.control.mpc import GradientMPC
+    from pimbrl.control.plant import make_plant
+
+    task = task_of(PENDULUM, {})
+    mpc = GradientMPC(make_plant(task.physics), 5, 2, 0.1, 2, 200)
+    action = mpc(task.validation_initial_states(2), np.full(2, 200, dtype=np.int64))
+    assert action.shape == (2, 1) and mpc.transitions == 0

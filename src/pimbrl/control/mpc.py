@@ -63,6 +63,8 @@ class GradientMPC(Controller):
         first = bool(np.all(k == 0))
         u0 = torch.as_tensor(states, dtype=self.plant.dtype)
         k0 = torch.as_tensor(k, dtype=torch.int64)
+        if self.span(k0) == 0:  # every episode has ended: nothing to plan (the plan's first action, unchanged)
+            return self.plant.physical(self.plan[:, 0]).numpy()
         plan = self.plan.clone().requires_grad_(True)
         optimizer = torch.optim.Adam([plan], lr=self.lr)
         steps = self.first_iterations if first else self.iterations

@@ -220,6 +220,10 @@ class Task(ABC):
         """
         return self.sample_initial_states(np.random.default_rng(np.random.SeedSequence(HOLDOUT_SEED)), n)
 
+    def pool_size(self, protocol: str) -> int | None:
+        """The number of states the pool of ``protocol`` holds (``None``: draws without limit, the default)."""
+        return None
+
     def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
         """Initial states of the episodes of an evaluation ``protocol`` (one of :attr:`eval_protocols`).
 

@@ -21,7 +21,7 @@ from typing import Any
 from . import stats
 from .engine import directory_name
 from .registration import study_label
-from .spec import StudySpec, system_id
+from .spec import StudySpec, setting_values, system_id
 from .stats import threshold_key
 
 __all__ = ["Report", "load_record", "steps_to", "study_report", "write_pages"]
@@ -368,15 +368,16 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
     lines.append(f"- **Runs**: {len(record['runs'])}; CPU: {cpu}; commit: {commit}.")
-    protocols = {arm.overrides.get("eval_protocol", spec.overrides.get("eval_protocol", "test")) for arm in spec.arms}
+    protocols = {p for arm in spec.arms for p in setting_values(arm, spec.overrides, spec.grid, "eval_protocol", "test")}
     if protocols != {"test"}:
         on = "every arm" if protocols == {"validation"} else "some arms"
         lines.append(
             f"- **Evaluations**: on the validation draws for {on} (eval_protocol: validation): "
             "its returns are validation returns."
         )
-    holdout = {arm.overrides.get("holdout_episodes", spec.overrides.get("holdout_episodes", 0)) for arm in spec.arms}
-    if holdout != {0}:
+    holdout = {h for arm in spec.arms for h in setting_values(arm, spec.overrides, spec.grid, "holdout_episodes", 0)}
+    holdout = {h for h in holdout if h}
+    if holdout:
         lines.append(
             f"- **Holdout**: each run's final policy played {', '.join(str(h) for h in sorted(holdout))} states of the holdout "
             "pool once, after its last step (outcome holdout judges by them)."

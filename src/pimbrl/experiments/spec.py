@@ -65,6 +65,7 @@ __all__ = [
     "load_spec",
     "parse_spec",
     "safe_component",
+    "setting_values",
     "spec_to_yaml",
     "system_id",
 ]
@@ -307,7 +308,25 @@ def _pairs(value: Any, arms: Sequence[str], where: str) -> tuple[tuple[str, str]
     return tuple(out)
 
 
-def _tuning(value: Any, arms: Sequence[Arm], overrides: Mapping[str, Any], where: str) -> dict[str, tuple[str, ...]]:
+def setting_values(
+    arm: Arm, overrides: Mapping[str, Any], grid: Mapping[str, Sequence[Any]], key: str, default: Any
+) -> list[Any]:
+    """The values ``key`` takes in the runs of ``arm``: its own override, else the grid's values, else the study's."""
+    if key in arm.overrides:
+        return [arm.overrides[key]]
+    if key in grid:
+        return list(grid[key])
+    return [overrides.get(key, default)]
+
+
+def _tuning(
+    value: Any,
+    arms: Sequence[Arm],
+    overrides: Mapping[str, Any],
+    grid: Mapping[str, Sequence[Any]],
+    outcome: str,
+    where: str,
+) -> dict[str, tuple[str, ...]]:
     """A tuning study's candidates per method family, checked.
 
     Known arms, each in one family, equal budgets, and every candidate evaluated on the validation draws
@@ -317,6 +336,8 @@ def _tuning(value: Any, arms: Sequence[Arm], overrides: Mapping[str, Any], where
         return {}
     if not isinstance(value, dict) or any(not isinstance(v, list) or not v for v in value.values()):
         raise _fail(where, f"'tuning' must map each method to a non-empty list of its candidate arms, got {value!r}")
+    if outcome != "final":
+        raise _fail(where, f"a tuning study chooses by each candidate's final validation return: 'outcome: {outcome}' is refused")
     by_name = {a.name: a for a in arms}
     seen: dict[str, str] = {}
     for family, candidates in value.items():
@@ -326,12 +347,17 @@ def _tuning(value: Any, arms: Sequence[Arm], overrides: Mapping[str, Any], where
             if arm in seen:
                 raise _fail(where, f"'tuning': arm {arm} is a candidate of both {seen[arm]} and {family}; give it to one")
             seen[arm] = str(family)
-            protocol = by_name[arm].overrides.get("eval_protocol", overrides.get("eval_protocol", "test"))
-            if protocol != "validation":
+            protocols = set(setting_values(by_name[arm], overrides, grid, "eval_protocol", "test"))
+            if protocols != {"validation"}:
+                shown = ", ".join(sorted(str(p) for p in protocols - {"validation"}))
                 raise _fail(
                     where,
-                    f"'tuning': arm {arm} is evaluated on the {protocol} draws; a tuning study chooses on the validation "
+                    f"'tuning': arm {arm} is evaluated on the {shown} draws; a tuning study chooses on the validation "
                     "draws alone: set eval_protocol: validation in the overrides",
+                )
+            if any(setting_values(by_name[arm], overrides, grid, "holdout_episodes", 0)):
+                raise _fail(
+                    where, f"'tuning': arm {arm} plays the holdout pool (holdout_episodes); a tuning study must not read it"
                 )
     sizes = {family: len(candidates) for family, candidates in value.items()}
     if len(set(sizes.values())) > 1:
@@ -482,12 +508,12 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
     except ConfigError as exc:
         raise _fail(where, str(exc)) from None
     if outcome == "holdout" and record is None:
-        unset = [a.name for a in arms if not (a.overrides.get("holdout_episodes") or overrides.get("holdout_episodes"))]
+        unset = [a.name for a in arms if not all(setting_values(a, overrides, grid, "holdout_episodes", 0))]
         if unset:
             raise _fail(
                 where,
                 f"'outcome: holdout' needs holdout_episodes > 0 in the overrides (the holdout pool's episodes each run's "
-                f"final policy plays); arm(s) {', '.join(unset)} have none",
+                f"final policy plays); arm(s) {', '.join(unset)} have none in some run",
             )
     layout = data.get("layout", "auto")
     if layout not in ("auto", "compact", "full"):
@@ -521,7 +547,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         layout=layout,
         record=record,
         imports=tuple(imports),
-        tuning=_tuning(data.get("tuning"), arms, overrides, where),
+        tuning=_tuning(data.get("tuning"), arms, overrides, grid, outcome, where),
         sha256=hashlib.sha256(text.encode()).hexdigest() if text else "",
         text=text,
     )

@@ -480,8 +480,9 @@ def ks_initial_state_pool(
     cfg = config or KSPoolConfig()
     phys = physics or KuramotoSivashinsky()
     key = _cache_key(phys, cfg)
-    if (key, split) in _MEMO:
-        return _MEMO[(key, split)]
+    memo_key = (key, f"holdout{cfg.n_holdout}" if split == "holdout" else split)  # as the file name
+    if memo_key in _MEMO:
+        return _MEMO[memo_key]
     directory = cache_dir() / "ks_pools"
     try:
         cacheable = private_directory(directory, "KS pools (the KS pool cache)")
@@ -494,7 +495,7 @@ def ks_initial_state_pool(
         pool = _generate_split(phys, cfg, split, verbose)
         if cacheable:
             _save_atomic(path, pool)
-    _MEMO[(key, split)] = pool
+    _MEMO[memo_key] = pool
     return pool
 
 
@@ -631,6 +632,12 @@ class KSTask(Task):
     def test_pool_size(self) -> int:
         """Number of states in the test pool of :attr:`pool_config` (known without generating it)."""
         return (self.pool_config or KSPoolConfig()).n_test
+
+    def pool_size(self, protocol: str) -> int | None:
+        """States of the pool ``protocol`` draws from: KS's pools are finite (known without generating them)."""
+        cfg = self.pool_config or KSPoolConfig()
+        sizes = {"test": cfg.n_test, "validation": cfg.n_validation, "holdout": cfg.n_holdout, "authors": 5}
+        return sizes.get(protocol)
 
     def test_initial_states(self, n: int, seed: int) -> np.ndarray:
         """The first ``n`` states of the test pool of :attr:`pool_config`, in pool order; ``seed`` is unused.

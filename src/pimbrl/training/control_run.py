@@ -37,6 +37,7 @@ from ..control.feedback import declared_feedback, make_feedback, tune_gain
 from ..envs import Task
 from ..fileio import MAX_JSON_BYTES, read_below, strict_json
 from .config import TrainConfig
+from .evaluation import check_pool_sizes
 from .holdout import read_holdout, write_holdout
 from .methods import DPC, MPC, Feedback
 from .rundir import RunDirectory, steps_to_threshold
@@ -77,6 +78,7 @@ class ControlRun:
             task = task_of(cfg.env, cfg.env_kwargs)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        check_pool_sizes(task, cfg.eval_protocol, cfg.eval_episodes, cfg.holdout_episodes)
         return cls(cfg, run_dir, task, progress)
 
     def load(self) -> None:
@@ -102,15 +104,19 @@ class ControlRun:
         self._started = time.perf_counter()
         self._offset = float(self.state.get("wall_s", 0.0))
         try:
+            controller = None
             if not self.finished:
                 controller = self._controller()
                 self._test(controller)
-                if self.cfg.holdout_episodes and read_holdout(self.run_dir, self.t) is None:
-                    result = self._play_pool(controller, "holdout", self.cfg.holdout_episodes)
-                    write_holdout(self.run_dir, self.t, result.returns, result.lengths)
                 self.state["done"] = True
                 self._save()
-            return self._finish()
+            played = False
+            if self.cfg.holdout_episodes and read_holdout(self.run_dir, self.t) is None:  # after the test, or resumed
+                controller = controller or self._controller()
+                result = self._play_pool(controller, "holdout", self.cfg.holdout_episodes)
+                write_holdout(self.run_dir, self.t, result.returns, result.lengths)
+                played = True
+            return self._finish(update=played)
         finally:
             self.run_dir.close()
 
@@ -281,7 +287,7 @@ class ControlRun:
         """Gradient steps of the controller's training (DPC), 0 for the others."""
         return int(self.state.get("dpc", {}).get("steps", 0))
 
-    def _finish(self) -> RunSummary:
+    def _finish(self, update: bool = False) -> RunSummary:
         rows = self.run_dir.evaluations.read()
         final = float(rows[-1]["return_mean"]) if rows else None
         scheme = int(self.state.get("dpc", {}).get("scheme_transitions", 0)) + sum(
@@ -303,6 +309,6 @@ class ControlRun:
             holdout_return_mean=None if holdout is None else float(holdout["return_mean"]),
             holdout_episodes=0 if holdout is None else int(holdout["episodes"]),
         )
-        if self.run_dir.status != "finished":
+        if update or self.run_dir.status != "finished":
             self.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))
         return summary

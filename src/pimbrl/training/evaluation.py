@@ -5,7 +5,8 @@
   (disjoint from the training pool), or states drawn once with ``eval_seed`` for the others;
 * other Gymnasium environments: episodes one after another, reset with seeds ``seed + i`` (``eval_seed``
   for the test episodes, :data:`~pimbrl.envs.VALIDATION_SEED` for the validation episodes and
-  :data:`~pimbrl.envs.HOLDOUT_SEED` for the holdout episodes, whatever seed is passed).
+  64-bit seeds drawn from :data:`~pimbrl.envs.HOLDOUT_SEED`'s stream for the holdout episodes, whatever
+  seed is passed).
 
 The ``"validation"`` protocol runs the validation draws (:meth:`pimbrl.envs.task.Task.validation_initial_states`),
 which the decisions made during training read (the switch to model-free fine-tuning); the test states decide
@@ -33,7 +34,7 @@ from gymnasium.vector import AutoresetMode
 from ..envs import HOLDOUT_SEED, VALIDATION_SEED, PhysicsEnv
 from ..spaces import ActionAdapter
 
-__all__ = ["EvalResult", "Evaluator"]
+__all__ = ["EvalResult", "Evaluator", "check_pool_sizes"]
 
 Policy = Callable[[np.ndarray], np.ndarray]  # batched observations -> normalised actions
 
@@ -76,6 +77,27 @@ class EvalResult:
         }
 
 
+def check_pool_sizes(task: Any, eval_protocol: str, eval_episodes: int, holdout_episodes: int) -> None:
+    """A one-line ``ConfigError`` where the run asks a finite pool (KS's) for more states than it holds.
+
+    Checked when a run is built, so that a run never finds out at its end (the holdout evaluation).
+    """
+    from ..config import ConfigError
+
+    if task is None:
+        return
+    for protocol, wanted, setting in (
+        (eval_protocol, eval_episodes, "eval_episodes"),
+        ("holdout", holdout_episodes, "holdout_episodes"),
+    ):
+        size = task.pool_size(protocol)
+        if wanted and size is not None and wanted > size:
+            raise ConfigError(
+                f"{setting} {wanted:,d}: the {protocol} pool holds {size:,d} states; ask for at most {size:,d} or enlarge "
+                f'the pool (KS: --env-kwargs \'{{"pool_config": {{"n_{protocol}": {wanted}}}}}\')'
+            )
+
+
 class Evaluator:
     """Runs test episodes of ``env_id`` for a policy; the initial states are fixed at construction.
 
@@ -97,7 +119,7 @@ class Evaluator:
                 f"evaluation protocol {protocol!r} is not defined for {env_id}: environments outside pimbrl have only "
                 "'test', 'validation' and 'holdout'"
             )
-        if not self.native:  # the draws are the reset seeds: each pool has its own stream
+        if not self.native:  # the draws are the reset seeds: each pool has its own
             self.seed = {"validation": VALIDATION_SEED, "holdout": HOLDOUT_SEED}.get(protocol, self.seed)
         if isinstance(base, PhysicsEnv):
             self.initial_states = base.task.protocol_initial_states(protocol, episodes, self.seed)
@@ -114,6 +136,10 @@ class Evaluator:
                 raise ValueError(f"evaluating {env_id} needs a number of episodes")
             self.episodes = int(episodes)
             self.env = probe
+            if protocol == "holdout":  # 64-bit seeds of its own stream: no run of consecutive seeds meets another pool's
+                self.reset_seeds = [int(x) for x in np.random.SeedSequence(HOLDOUT_SEED).generate_state(self.episodes, np.uint64)]
+            else:  # the test and validation episodes: seed + i, as every earlier release
+                self.reset_seeds = [self.seed + i for i in range(self.episodes)]
 
     def run(self, policy: Policy) -> EvalResult:
         """Run the test episodes with ``policy``, all at once on a pimbrl vector env, else one after another."""
@@ -141,7 +167,7 @@ class Evaluator:
         returns, lengths = [], []
         spent = 0.0
         for i in range(self.episodes):
-            obs, _ = self.env.reset(seed=self.seed + i)
+            obs, _ = self.env.reset(seed=self.reset_seeds[i])
             total, steps, done = 0.0, 0, False
             while not done:
                 start = time.perf_counter()

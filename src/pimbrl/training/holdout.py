@@ -62,11 +62,15 @@ def read_holdout(run_dir: RunDirectory, step: int | None = None) -> dict[str, An
         and len(returns) > 0
         and all(isinstance(r, (int, float)) and not isinstance(r, bool) for r in returns)
         and isinstance(payload.get("return_mean"), (int, float))
+        and payload.get("episodes") == len(returns)
     )
     if not ok or not math.isclose(
         float(np.mean(returns or [math.nan])), float(payload["return_mean"]), rel_tol=1e-9, abs_tol=1e-12
     ):
-        raise UnsafeFileError(f"{path}: not a holdout evaluation pimbrl wrote; delete it and open the run again to replay it")
+        raise UnsafeFileError(
+            f"{path}: not a holdout evaluation pimbrl wrote; restore it from a copy (a run plays its holdout pool once: "
+            "deleting the file and resuming the run plays it again, which a confirmatory study must report)"
+        )
     if step is not None and payload["step"] != step:
         return None  # an earlier final policy's (the run was extended since)
     return payload

@@ -43,7 +43,7 @@ from .collector import Collector
 from .config import TrainConfig, config_from_dict, config_to_dict
 from .control_run import ControlRun
 from .dyna import PHASES, DynaModel, agent_batch
-from .evaluation import Evaluator
+from .evaluation import Evaluator, check_pool_sizes
 from .holdout import read_holdout, write_holdout
 from .logger import RunLogger
 from .rundir import CheckpointError, RunDirectory, package_versions, provenance, steps_to_threshold
@@ -156,6 +156,8 @@ class Run:
         cfg = self.cfg
         if protocol == cfg.eval_protocol and episodes in (None, cfg.eval_episodes):
             return self.evaluator
+        if episodes is None and protocol in ("test", "validation"):  # as many as the run's evaluations play
+            episodes = cfg.eval_episodes
         return Evaluator(cfg.env, cfg.env_kwargs, episodes, cfg.eval_seed, protocol=protocol)
 
     def use_selected_policy(self) -> int:
@@ -357,17 +359,19 @@ def _evaluate(run: Run) -> None:
             run.run_dir.selection.append(selector.observe(run.t, run.agent, result.mean))
 
 
-def _evaluate_holdout(run: Run) -> None:
-    """The final policy, once, on the holdout pool (``holdout_episodes``), into ``holdout.json``.
+def _evaluate_holdout(run: Run) -> bool:
+    """The final policy, once, on the holdout pool (``holdout_episodes``), into ``holdout.json``; whether it played.
 
-    Played again only where the file belongs to an earlier final policy (the run was extended since).
+    Played again only where the file belongs to an earlier final policy (the run was extended since) or is
+    missing.
     """
     episodes = run.cfg.holdout_episodes
     if not episodes or read_holdout(run.run_dir, run.t) is not None:
-        return
+        return False
     with run.logger.timed("evaluate"):
         result = run.evaluator_for("holdout", episodes).run(lambda o: run.agent.act(o, deterministic=True))
     write_holdout(run.run_dir, run.t, result.returns, result.lengths)
+    return True
 
 
 def _finish(run: Run) -> RunSummary:
@@ -375,9 +379,9 @@ def _finish(run: Run) -> RunSummary:
 
     Once; it also repairs a missing mark (a run killed between its final checkpoint and the mark).
     """
-    _evaluate_holdout(run)
+    played = _evaluate_holdout(run)
     summary = run.summary()
-    if run.run_dir.status != "finished":
+    if played or run.run_dir.status != "finished":
         run.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))
     return summary
 
@@ -402,6 +406,7 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
         raise ConfigError(
             f"environment {cfg.env} cannot be made here ({type(exc).__name__}: {first}); install what it needs"
         ) from None
+    check_pool_sizes(collector.task, cfg.eval_protocol, cfg.eval_episodes, cfg.holdout_episodes)
     agent = make_agent(
         cfg.agent,
         collector.obs_dim,

@@ -488,6 +488,7 @@ class RunDirectory:
         "selection.csv": "regular file",
         "coefficients.json": "regular file",
         "control.json": "regular file",
+        "holdout.json": "regular file",
         "checkpoints": "directory",
         "checkpoints/latest.pt": "regular file",
         "tb": "directory",
