@@ -242,7 +242,7 @@ def test_ks_authors_protocol_takes_fixed_training_rows_and_other_tasks_refuse_it
 
     train, test = ks_small_pools
     ks = KSTask(pool_config=SMALL_POOL)
-    assert ks.eval_protocols == ("test", "validation", "authors")
+    assert ks.eval_protocols == ("test", "validation", "holdout", "authors")
     np.testing.assert_array_equal(ks.protocol_initial_states("test", 3, seed=0), test.states[:3])
     # the paper's rows need a training pool of at least 200 states; the small one holds 24
     with pytest.raises(ValueError, match="pool holds 24 states"):
