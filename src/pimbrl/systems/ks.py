@@ -480,7 +480,8 @@ def ks_initial_state_pool(
     cfg = config or KSPoolConfig()
     phys = physics or KuramotoSivashinsky()
     key = _cache_key(phys, cfg)
-    memo_key = (key, f"holdout{cfg.n_holdout}" if split == "holdout" else split)  # as the file name
+    name = f"holdout{cfg.n_holdout}" if split == "holdout" else split  # the holdout's size is not in the key
+    memo_key = (key, name)
     if memo_key in _MEMO:
         return _MEMO[memo_key]
     directory = cache_dir() / "ks_pools"
@@ -488,7 +489,7 @@ def ks_initial_state_pool(
         cacheable = private_directory(directory, "KS pools (the KS pool cache)")
     except OSError:
         cacheable = False
-    path = directory / (f"ks_pool_{key}_holdout{cfg.n_holdout}.npz" if split == "holdout" else f"ks_pool_{key}_{split}.npz")
+    path = directory / f"ks_pool_{key}_{name}.npz"
     n_target = split_size(cfg, split)
     pool = _load_cached(path, n_target, phys.n) if cacheable else None
     if pool is None:
@@ -635,9 +636,19 @@ class KSTask(Task):
 
     def pool_size(self, protocol: str) -> int | None:
         """States of the pool ``protocol`` draws from: KS's pools are finite (known without generating them)."""
-        cfg = self.pool_config or KSPoolConfig()
-        sizes = {"test": cfg.n_test, "validation": cfg.n_validation, "holdout": cfg.n_holdout, "authors": 5}
-        return sizes.get(protocol)
+        if protocol == "authors":
+            return len(self.AUTHORS_EVAL_ROWS)
+        return split_size(self.pool_config or KSPoolConfig(), protocol) if protocol in _SPLIT_KEYS else None
+
+    def _first_pool_states(self, split: Split, n: int) -> np.ndarray:
+        """The first ``n`` states of the pool ``split`` of :attr:`pool_config`, in pool order (a one-line error past its size)."""
+        size = split_size(self.pool_config or KSPoolConfig(), split)
+        if not 0 <= n <= size:
+            raise ValueError(
+                f"{n} KS {split} states requested, but the {split} pool holds {size} "
+                f"(raise KSPoolConfig.n_{split} through pool_config, or ask for fewer {split} episodes)"
+            )
+        return ks_initial_state_pool(split, self.pool_config).states[:n].copy()
 
     def test_initial_states(self, n: int, seed: int) -> np.ndarray:
         """The first ``n`` states of the test pool of :attr:`pool_config`, in pool order; ``seed`` is unused.
@@ -645,12 +656,7 @@ class KSTask(Task):
         The test pool comes from runs disjoint from the training pool's, whatever ``initial_states`` this
         task samples its training episodes from.
         """
-        if not 0 <= n <= self.test_pool_size:
-            raise ValueError(
-                f"{n} KS test states requested, but the test pool holds {self.test_pool_size} "
-                "(raise KSPoolConfig.n_test through pool_config, or ask for fewer test episodes)"
-            )
-        return ks_initial_state_pool("test", self.pool_config).states[:n].copy()
+        return self._first_pool_states("test", n)
 
     #: rows of the training pool evaluated by the ``"authors"`` protocol, as the authors' code evaluates rows
     #: 0, 49, 99, 149 and 199 of its array of training initial states
@@ -666,13 +672,7 @@ class KSTask(Task):
 
         The validation pool comes from runs disjoint from the training and test pools' (its own seed stream).
         """
-        size = (self.pool_config or KSPoolConfig()).n_validation
-        if not 0 <= n <= size:
-            raise ValueError(
-                f"{n} KS validation states requested, but the validation pool holds {size} "
-                "(raise KSPoolConfig.n_validation through pool_config, or ask for fewer validation episodes)"
-            )
-        return ks_initial_state_pool("validation", self.pool_config).states[:n].copy()
+        return self._first_pool_states("validation", n)
 
     def holdout_initial_states(self, n: int) -> np.ndarray:
         """The first ``n`` states of the holdout pool of :attr:`pool_config`, in pool order.
@@ -680,13 +680,7 @@ class KSTask(Task):
         The holdout pool comes from runs disjoint from the other pools' (its own seed stream); only the final
         evaluation of a run reads it (``holdout_episodes``).
         """
-        size = (self.pool_config or KSPoolConfig()).n_holdout
-        if not 0 <= n <= size:
-            raise ValueError(
-                f"{n} KS holdout states requested, but the holdout pool holds {size} "
-                "(raise KSPoolConfig.n_holdout through pool_config, or ask for fewer holdout episodes)"
-            )
-        return ks_initial_state_pool("holdout", self.pool_config).states[:n].copy()
+        return self._first_pool_states("holdout", n)
 
     def protocol_initial_states(self, protocol: str, n: int | None, seed: int) -> np.ndarray:
         """``"test"``: the first ``n`` test-pool states; ``"authors"``: rows :data:`AUTHORS_EVAL_ROWS` of the training pool.

@@ -38,7 +38,7 @@ from ..envs import Task
 from ..fileio import MAX_JSON_BYTES, read_below, strict_json
 from .config import TrainConfig
 from .evaluation import check_pool_sizes
-from .holdout import read_holdout, write_holdout
+from .holdout import holdout_summary, read_holdout, write_holdout
 from .methods import DPC, MPC, Feedback
 from .rundir import RunDirectory, steps_to_threshold
 from .summary import RunSummary
@@ -293,7 +293,6 @@ class ControlRun:
         scheme = int(self.state.get("dpc", {}).get("scheme_transitions", 0)) + sum(
             int(c["scheme_transitions"]) for pool in ("test", "holdout") for c in self.state.get(pool, {}).get("chunks", [])
         )
-        holdout = read_holdout(self.run_dir, self.t) if self.cfg.holdout_episodes else None
         summary = RunSummary(
             steps=self.t,
             updates=self._updates(),
@@ -306,8 +305,7 @@ class ControlRun:
             scheme_transitions=scheme,
             validation_transitions=int(self.state.get("validation_transitions", 0)),
             inference_s_per_step=self.state.get("inference_s_per_step"),
-            holdout_return_mean=None if holdout is None else float(holdout["return_mean"]),
-            holdout_episodes=0 if holdout is None else int(holdout["episodes"]),
+            **holdout_summary(self.run_dir, self.t, self.cfg.holdout_episodes),
         )
         if update or self.run_dir.status != "finished":
             self.run_dir.update_status(status="finished", summary=dataclasses.asdict(summary))

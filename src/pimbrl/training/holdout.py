@@ -17,7 +17,7 @@ import numpy as np
 from ..fileio import MAX_JSON_BYTES, UnsafeFileError, read_below, strict_json
 from .rundir import RunDirectory
 
-__all__ = ["HOLDOUT_FILE", "read_holdout", "write_holdout"]
+__all__ = ["HOLDOUT_FILE", "holdout_summary", "read_holdout", "write_holdout"]
 
 HOLDOUT_FILE = "holdout.json"
 
@@ -74,3 +74,11 @@ def read_holdout(run_dir: RunDirectory, step: int | None = None) -> dict[str, An
     if step is not None and payload["step"] != step:
         return None  # an earlier final policy's (the run was extended since)
     return payload
+
+
+def holdout_summary(run_dir: RunDirectory, step: int, episodes: int) -> dict[str, Any]:
+    """The summary's holdout fields of a run at real step ``step`` that asks for ``episodes`` (none played: empty)."""
+    holdout = read_holdout(run_dir, step) if episodes else None
+    if holdout is None:
+        return {}
+    return {"holdout_return_mean": float(holdout["return_mean"]), "holdout_episodes": int(holdout["episodes"])}

@@ -44,7 +44,7 @@ from .config import TrainConfig, config_from_dict, config_to_dict
 from .control_run import ControlRun
 from .dyna import PHASES, DynaModel, agent_batch
 from .evaluation import Evaluator, check_pool_sizes
-from .holdout import read_holdout, write_holdout
+from .holdout import holdout_summary, read_holdout, write_holdout
 from .logger import RunLogger
 from .rundir import CheckpointError, RunDirectory, package_versions, provenance, steps_to_threshold
 from .selection import PolicySelector
@@ -218,7 +218,6 @@ class Run:
         rows = self.run_dir.evaluations.read()
         returns = [float(r["return_mean"]) for r in rows]
         selector = self.selector
-        holdout = read_holdout(self.run_dir, self.t) if self.cfg.holdout_episodes else None
         return RunSummary(
             steps=self.t,
             updates=self.agent.n_updates,
@@ -233,8 +232,7 @@ class Run:
             scheme_transitions=0 if self.model is None else self.model.scheme_transitions,
             validation_transitions=0 if self.model is None else self.model.validation_transitions,
             inference_s_per_step=self.inference_s_per_step,
-            holdout_return_mean=None if holdout is None else float(holdout["return_mean"]),
-            holdout_episodes=0 if holdout is None else int(holdout["episodes"]),
+            **holdout_summary(self.run_dir, self.t, self.cfg.holdout_episodes),
         )
 
     def lr_scale(self) -> float | None:
