@@ -515,3 +515,24 @@ def test_two_comparisons_in_one_directory_do_not_run_at_once(tmp_path) -> None:
         assert summary["runs"] == []  # a --no-run summary takes no lock
     finally:
         os.close(held)
+
+
+def test_a_recipe_gives_each_method_and_agent_its_own_settings_on_top() -> None:
+    from pimbrl.systems.presets import PresetError, load_presets
+    from pimbrl.training.config import recipe_settings
+
+    data = {"recipes": {"default": {"settings": {"total_steps": 300, "agent.actor_lr": 1e-3},
+                                    "model_based": {"utd": 5.0},
+                                    "methods": {"pimbrl": {"physics.weight": 0.1}, "mfrl": {"agent.actor_lr": 3e-4}},
+                                    "agents": {"crossq": {"agent.actor_lr": 3e-3}}}}}  # fmt: skip
+    recipe = load_presets(data)[1]["default"]
+    assert recipe_settings(recipe, True, "pimbrl", "td3") == {"total_steps": 300, "agent.actor_lr": 1e-3, "utd": 5.0,
+                                                              "physics.weight": 0.1}  # fmt: skip
+    assert recipe_settings(recipe, False, "mfrl", "td3")["agent.actor_lr"] == 3e-4
+    assert recipe_settings(recipe, False, "mfrl", "crossq")["agent.actor_lr"] == 3e-3  # the agent's last
+    assert "physics.weight" not in recipe_settings(recipe, True, "mbrl", "td3")
+    typo = load_presets({"recipes": {"default": {"methods": {"pimbr": {"physics.weight": 0.1}}}}})[1]["default"]
+    with pytest.raises(ConfigError, match="recipe 'default': methods names 'pimbr' .*did you mean 'pimbrl'"):
+        recipe_settings(typo, True, "pimbrl", "td3")
+    with pytest.raises(PresetError, match="methods must map method names to settings"):
+        load_presets({"recipes": {"default": {"methods": {"pimbrl": 0.1}}}})

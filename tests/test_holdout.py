@@ -248,3 +248,21 @@ def test_mpc_with_every_episode_ended_has_nothing_to_plan() -> None:
     mpc = GradientMPC(make_plant(task.physics), 5, 2, 0.1, 2, 200)
     action = mpc(task.validation_initial_states(2), np.full(2, 200, dtype=np.int64))
     assert action.shape == (2, 1) and mpc.transitions == 0
+
+
+def test_an_arm_may_run_its_own_seeds_and_a_tuning_candidate_may_not_run_fewer(tmp_path) -> None:
+    from pimbrl.experiments.engine import plan_study
+
+    base = {"name": "s", "systems": ["pendulum"], "seeds": [0, 1, 2], "overrides": {"total_steps": 300}}
+    methods = {"mfrl": {"method": "mfrl"}, "mpc": {"method": "mpc", "seeds": [0]}}
+    spec = parse_spec({**base, "methods": methods}, where="s.yaml")
+    assert spec.seeds_of("mfrl") == (0, 1, 2) and spec.seeds_of("mpc") == (0,)
+    runs = plan_study(spec, tmp_path)
+    assert sorted((r.arm, r.seed) for r in runs) == [("mfrl", 0), ("mfrl", 1), ("mfrl", 2), ("mpc", 0)]
+    with pytest.raises(ConfigError, match="s.yaml: arm mpc: seed 0 is given twice"):
+        parse_spec({**base, "methods": {"mpc": {"method": "mpc", "seeds": [0, 0]}}}, where="s.yaml")
+    arms = _tuning_spec({})["methods"]
+    arms["pimbrl-b"] = {**arms["pimbrl-b"], "seeds": [0]}
+    tuning = {"mfrl": ["mfrl-a", "mfrl-b"], "pimbrl": ["pimbrl-a", "pimbrl-b"]}
+    with pytest.raises(ConfigError, match=r"unequal numbers of seeds \(1, 2\)"):
+        parse_spec({**_tuning_spec(tuning), "methods": arms}, where="t.yaml")

@@ -145,10 +145,10 @@ def plan_study(spec: StudySpec, root: str | Path) -> list[StudyRun]:
                 try:
                     if arm.match_updates and "utd" not in fields:  # the user's utd wins
                         fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}, preset=spec.preset).utd
-                    first = resolve_config(env_id, {**fields, "seed": spec.seeds[0]}, preset=spec.preset)
+                    first = resolve_config(env_id, {**fields, "seed": spec.seeds_of(arm)[0]}, preset=spec.preset)
                 except ConfigError as exc:
                     raise ConfigError(f"{where}: {exc}") from None
-                for seed in spec.seeds:
+                for seed in spec.seeds_of(arm):
                     cfg = dataclasses.replace(first, seed=seed)
                     key = same_run_key(env_id, arm.method, cfg)
                     label = f"{where} seed {seed}"

@@ -318,7 +318,7 @@ def _tuning_choices(spec: StudySpec, group: dict[str, Any]) -> dict[str, Any]:
     """
     out: dict[str, Any] = {}
     for family, candidates in spec.tuning.items():
-        complete = all(c in group and group[c]["finished"] == len(spec.seeds) for c in candidates)
+        complete = all(c in group and group[c]["finished"] == len(spec.seeds_of(c)) for c in candidates)
         scores = {c: group[c]["iqm"]["value"] for c in candidates if c in group}
         best = max(candidates, key=lambda c: scores.get(c, -math.inf)) if complete else None  # ties: the first listed
         out[family] = {"candidates": list(candidates), "iqm": scores, "chosen": best}
@@ -326,9 +326,9 @@ def _tuning_choices(spec: StudySpec, group: dict[str, Any]) -> dict[str, Any]:
 
 
 def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
-    n = len(next(iter(spec.tuning.values())))
+    first = next(iter(spec.tuning.values()))
     lines = [
-        f"Tuning ({n} candidates x {len(spec.seeds)} seeds per method, chosen by the IQM of the {spec.outcome} return on "
+        f"Tuning ({len(first)} candidates x {len(spec.seeds_of(first[0]))} seeds per method, chosen by the IQM of the {spec.outcome} return on "
         "the validation draws; no test state was read):",
         "",
         "| method | candidates (IQM) | chosen |",

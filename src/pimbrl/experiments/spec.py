@@ -13,6 +13,7 @@ writes its tables, figures and hypothesis verdicts from that record. A spec::
     #   known-scheme: {method: known-scheme}
     #   mfrl-matched: {method: mfrl, match_updates: true}   # the model-based recipe's update-to-data ratio
     #   pimbrl-w0.1: {method: pimbrl, overrides: {physics.weight: 0.1}}
+    #   mpc: {method: mpc, seeds: [0, 1, 2]}   # an arm's own seeds (default: the spec's)
     overrides: {total_steps: 3000}      # every run they apply to (an override applying to none is an error)
     grid: {imagine.rollout_length: [3, 8]}   # every combination is one setting of every arm
     thresholds: [-11]                   # returns the report counts steps to (default: each system's)
@@ -107,7 +108,7 @@ _KEYS = {
     "imports",
     "tuning",
 }
-_ARM_KEYS = {"method", "overrides", "match_updates"}
+_ARM_KEYS = {"method", "overrides", "match_updates", "seeds"}
 _HYPOTHESIS_KEYS = {"claim", "better", "than", "metric", "threshold", "system"}
 _STAT_KEYS = {"confidence", "reps"}
 _RECORD_KEYS = {"path", "format", "command", "relabel", "select", "note"}
@@ -124,6 +125,8 @@ class Arm:
     overrides: dict[str, Any] = field(default_factory=dict)
     #: MFRL with the update-to-data ratio of the model-based recipe (unless ``overrides`` set ``utd``)
     match_updates: bool = False
+    #: the arm's own seeds (``()``: the spec's), e.g. fewer for a costly arm, or a deterministic controller
+    seeds: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -191,6 +194,11 @@ class StudySpec:
     def arm_names(self) -> tuple[str, ...]:
         """The arms' names, in the spec's order."""
         return tuple(a.name for a in self.arms)
+
+    def seeds_of(self, arm: str | Arm) -> tuple[int, ...]:
+        """The seeds ``arm`` runs: its own, else the spec's."""
+        a = self.arm(arm) if isinstance(arm, str) else arm
+        return a.seeds or self.seeds
 
     def arm(self, name: str) -> Arm:
         """The arm called ``name``."""
@@ -290,7 +298,8 @@ def _arms(value: Any, where: str) -> tuple[Arm, ...]:
         for key in overrides:
             if key in _OWN:
                 raise _fail(where, f"arm {name}: {key} cannot be overridden: the spec's '{_OWN[key]}' sets it")
-        arms.append(Arm(name, "mfrl" if method == MATCHED else method, overrides, match))
+        seeds = _seeds(body["seeds"], f"{where}: arm {name}") if "seeds" in body else ()
+        arms.append(Arm(name, "mfrl" if method == MATCHED else method, overrides, match, seeds))
     return tuple(arms)
 
 
@@ -325,6 +334,7 @@ def _tuning(
     overrides: Mapping[str, Any],
     grid: Mapping[str, Sequence[Any]],
     outcome: str,
+    seeds: Sequence[int],
     where: str,
 ) -> dict[str, tuple[str, ...]]:
     """A tuning study's candidates per method family, checked.
@@ -363,6 +373,13 @@ def _tuning(
     if len(set(sizes.values())) > 1:
         listed = ", ".join(f"{f} {n}" for f, n in sizes.items())
         raise _fail(where, f"'tuning': the methods have unequal budgets ({listed} candidates); give each as many")
+    counts = {len(by_name[arm].seeds or seeds) for candidates in value.values() for arm in candidates}
+    if len(counts) > 1:
+        raise _fail(
+            where,
+            f"'tuning': the candidates run unequal numbers of seeds ({', '.join(map(str, sorted(counts)))}); "
+            "give every candidate the same (drop the arms' own 'seeds')",
+        )
     return {str(family): tuple(candidates) for family, candidates in value.items()}
 
 
@@ -520,7 +537,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         raise _fail(where, f"'layout' must be auto, compact or full, got {layout!r}")
     if layout == "compact" and (len(systems) > 1 or grid):
         raise _fail(where, "'layout: compact' is for one system without a grid")
-    n_runs = len(systems) * len(arms) * len(seeds) * math.prod(len(v) for v in grid.values())
+    n_runs = len(systems) * sum(len(a.seeds or seeds) for a in arms) * math.prod(len(v) for v in grid.values())
     if n_runs > MAX_RUNS:
         raise _fail(where, f"{n_runs:,} runs are more than a study plans ({MAX_RUNS:,} at most); give fewer")
     name = data.get("name", Path(where).stem if where.endswith((".yaml", ".yml")) else "study")
@@ -547,7 +564,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         layout=layout,
         record=record,
         imports=tuple(imports),
-        tuning=_tuning(data.get("tuning"), arms, overrides, grid, outcome, where),
+        tuning=_tuning(data.get("tuning"), arms, overrides, grid, outcome, seeds, where),
         sha256=hashlib.sha256(text.encode()).hexdigest() if text else "",
         text=text,
     )

@@ -17,6 +17,10 @@ A preset file holds recipes by name and says which one a run gets without ``--pr
         chosen_by: the study that chose it, and on which draws
         method: known-scheme   # a recipe may choose the method (and the agent)
         settings: {...}
+        methods:               # on top, for one method each (e.g. each method's tuned settings)
+          pimbrl: {physics.weight: 0.01}
+        agents:                # on top of those, for one agent each
+          crossq: {agent.actor_lr: 0.001}
 
 Settings are the paths of the training configuration (``utd``, ``agent.gamma``, ``fit.steps``, ...). A
 recipe's setting that the chosen method does not have is skipped (a recipe serves every method); the
@@ -34,7 +38,7 @@ from typing import Any
 
 __all__ = ["PresetError", "Recipe", "load_presets"]
 
-_RECIPE_KEYS = {"about", "chosen_by", "method", "agent", "settings", "model_based"}
+_RECIPE_KEYS = {"about", "chosen_by", "method", "agent", "settings", "model_based", "methods", "agents"}
 
 
 class PresetError(ValueError):
@@ -53,6 +57,8 @@ class Recipe:
         agent: the agent it chooses (``""``: the command line's, else td3).
         settings: configuration paths -> values, for every method.
         model_based: configuration paths -> values, on top for the methods with a model.
+        methods: method name -> (configuration paths -> values), on top for that method.
+        agents: agent name -> (configuration paths -> values), on top (last) for that agent.
     """
 
     name: str
@@ -62,10 +68,17 @@ class Recipe:
     agent: str = ""
     settings: Mapping[str, Any] = field(default_factory=dict)
     model_based: Mapping[str, Any] = field(default_factory=dict)
+    methods: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    agents: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
-    def for_method(self, model_based: bool) -> dict[str, Any]:
-        """The recipe's settings for a method with (``True``) or without a model."""
-        return {**self.settings, **(self.model_based if model_based else {})}
+    def for_method(self, model_based: bool, method: str = "", agent: str = "") -> dict[str, Any]:
+        """The recipe's settings for a method with (``True``) or without a model; ``method``'s and ``agent``'s own on top."""
+        return {
+            **self.settings,
+            **(self.model_based if model_based else {}),
+            **self.methods.get(method, {}),
+            **self.agents.get(agent, {}),
+        }
 
 
 def _read(source: str | Path | Mapping[str, Any], where: str) -> Mapping[str, Any]:
@@ -102,6 +115,14 @@ def _recipe(name: str, body: Any, where: str) -> Recipe:
         value = body.get(key) or {}
         if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
             raise PresetError(f"{where}: recipe {name!r}: {key} must map setting paths (e.g. agent.gamma) to values")
+    for key in ("methods", "agents"):
+        value = body.get(key) or {}
+        if not isinstance(value, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, Mapping) and all(isinstance(p, str) for p in v) for k, v in value.items()
+        ):
+            raise PresetError(
+                f"{where}: recipe {name!r}: {key} must map {key[:-1]} names to settings (e.g. pimbrl: {{physics.weight: 0.01}})"
+            )
     for key in ("about", "chosen_by", "method", "agent"):
         if not isinstance(body.get(key, ""), str):
             raise PresetError(f"{where}: recipe {name!r}: {key} must be a string")
@@ -113,6 +134,8 @@ def _recipe(name: str, body: Any, where: str) -> Recipe:
         agent=body.get("agent", ""),
         settings=dict(body.get("settings") or {}),
         model_based=dict(body.get("model_based") or {}),
+        methods={str(k): dict(v) for k, v in (body.get("methods") or {}).items()},
+        agents={str(k): dict(v) for k, v in (body.get("agents") or {}).items()},
     )
 
 

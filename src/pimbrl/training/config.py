@@ -438,9 +438,20 @@ def _build(env: str, method: str, agent: str, flat: Mapping[str, Any]) -> TrainC
         raise ConfigError(str(exc)) from None
 
 
-def recipe_settings(recipe: Any, model_based: bool) -> dict[str, Any]:
-    """A recipe's settings for a method with or without a model, typed (the method and agent are its own keys)."""
-    settings = recipe.for_method(model_based)
+def recipe_settings(recipe: Any, model_based: bool, method: str = "", agent: str = "") -> dict[str, Any]:
+    """A recipe's settings for a method with or without a model, typed (the method and agent are its own keys).
+
+    ``method`` and ``agent`` add the recipe's settings for them (its ``methods:`` and ``agents:``); a name
+    there that is no method or agent is a :class:`ConfigError` (it would never apply).
+    """
+    for key, names, known in (("methods", recipe.methods, METHODS), ("agents", recipe.agents, AGENT_NAMES)):
+        for name in names:
+            if name not in known:
+                raise ConfigError(
+                    f"recipe {recipe.name!r}: {key} names {name!r}{did_you_mean(name, known)}, which is not one of "
+                    f"{', '.join(known)}; fix the system's preset file"
+                )
+    settings = recipe.for_method(model_based, method, agent)
     for key in ("method", "agent"):
         if key in settings:
             raise ConfigError(f"recipe {recipe.name!r}: {key} is chosen by the recipe's own '{key}:' key, not among its settings")
@@ -478,7 +489,7 @@ def resolve_config(env: str, overrides: Mapping[str, Any] | None = None, *, pres
         reason = inapplicable_reason(env, method, agent, path)
         if reason is not None:
             raise ConfigError(reason)
-    base = {} if recipe is None else recipe_settings(recipe, method != "mfrl")
+    base = {} if recipe is None else recipe_settings(recipe, method != "mfrl", method, agent)
     base = {k: v for k, v in base.items() if has_setting(method, agent, k)}
     merged = {**base, **typed}
     if "env_kwargs" in base and "env_kwargs" in typed:  # the user's keyword arguments go on top of the recipe's
@@ -753,7 +764,7 @@ def return_scale_warnings(cfg: TrainConfig, preset: str | None = None) -> list[s
         return []
     if recipe is None:
         return []
-    settings = recipe.for_method(cfg.model_based)
+    settings = recipe.for_method(cfg.model_based, cfg.method.name, "" if cfg.control else cfg.agent.name)
     kept = []  # (name, value, what it does, how to fix it)
     if settings.get("threshold") is not None and cfg.threshold == settings["threshold"]:
         kept.append(
