@@ -532,7 +532,30 @@ def test_a_recipe_gives_each_method_and_agent_its_own_settings_on_top() -> None:
     assert recipe_settings(recipe, False, "mfrl", "crossq")["agent.actor_lr"] == 3e-3  # the agent's last
     assert "physics.weight" not in recipe_settings(recipe, True, "mbrl", "td3")
     typo = load_presets({"recipes": {"default": {"methods": {"pimbr": {"physics.weight": 0.1}}}}})[1]["default"]
-    with pytest.raises(ConfigError, match="recipe 'default': methods names 'pimbr' .*did you mean 'pimbrl'"):
+    with pytest.raises(ConfigError, match=r"recipe 'default': methods names 'pimbr' .*did you mean 'pimbrl'"):
         recipe_settings(typo, True, "pimbrl", "td3")
     with pytest.raises(PresetError, match="methods must map method names to settings"):
         load_presets({"recipes": {"default": {"methods": {"pimbrl": 0.1}}}})
+    for section, message in (({"methods": {"mfrl": {"fit.steps": 7}}}, r"a mfrl run has no setting 'fit\.steps'"),
+                             ({"agents": {"td3": {"agent.n_critics": 7}}}, r"a td3 run has no setting 'agent\.n_critics'"),
+                             ({"methods": {"dpc": {"model.horizon": "abc"}}}, r"methods: dpc: .*model\.horizon"),
+                             ({"methods": {"pimbrl": {"threshold": -1.0}}}, "threshold belongs in the recipe's settings")):  # fmt: skip
+        bad = load_presets({"recipes": {"default": section}})[1]["default"]
+        with pytest.raises(ConfigError, match=message):  # checked whichever method runs
+            recipe_settings(bad, False, "mfrl", "td3")
+
+
+def test_a_recipes_method_and_agent_sections_reach_the_run_and_a_controller_gets_no_agents(monkeypatch) -> None:
+    from pimbrl.systems.presets import load_presets
+    from pimbrl.training import config as config_module
+
+    data = {"recipes": {"default": {"settings": {"total_steps": 300},
+                                    "methods": {"pimbrl": {"physics.weight": 0.3}, "mpc": {"model.horizon": 7}},
+                                    "agents": {"td3": {"eval_episodes": 3}, "crossq": {"agent.actor_lr": 0.002}}}}}  # fmt: skip
+    recipe = load_presets(data)[1]["default"]
+    monkeypatch.setattr(config_module, "recipe_of", lambda env, preset=None: recipe)
+    pimbrl = resolve_config("pimbrl/Pendulum-v0", {"method": "pimbrl"})
+    assert pimbrl.method.physics.weight == 0.3 and pimbrl.eval_episodes == 3 and pimbrl.total_steps == 300
+    assert resolve_config("pimbrl/Pendulum-v0", {"method": "mfrl", "agent": "crossq"}).agent.actor_lr == 0.002
+    mpc = resolve_config("pimbrl/Pendulum-v0", {"method": "mpc"})
+    assert mpc.method.horizon == 7 and mpc.eval_episodes != 3  # td3's section is not a controller's

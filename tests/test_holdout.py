@@ -259,7 +259,7 @@ def test_an_arm_may_run_its_own_seeds_and_a_tuning_candidate_may_not_run_fewer(t
     assert spec.seeds_of("mfrl") == (0, 1, 2) and spec.seeds_of("mpc") == (0,)
     runs = plan_study(spec, tmp_path)
     assert sorted((r.arm, r.seed) for r in runs) == [("mfrl", 0), ("mfrl", 1), ("mfrl", 2), ("mpc", 0)]
-    with pytest.raises(ConfigError, match="s.yaml: arm mpc: seed 0 is given twice"):
+    with pytest.raises(ConfigError, match=r"s\.yaml: arm mpc: seed 0 is given twice"):
         parse_spec({**base, "methods": {"mpc": {"method": "mpc", "seeds": [0, 0]}}}, where="s.yaml")
     arms = _tuning_spec({})["methods"]
     arms["pimbrl-b"] = {**arms["pimbrl-b"], "seeds": [0]}

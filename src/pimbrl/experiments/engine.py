@@ -144,7 +144,7 @@ def plan_study(spec: StudySpec, root: str | Path) -> list[StudyRun]:
                 where = f"study {spec.name}, {env_id} {arm.name}" + ("" if not params else f" {setting}")
                 try:
                     if arm.match_updates and "utd" not in fields:  # the user's utd wins
-                        fields["utd"] = resolve_config(env_id, {"method": "pimbrl"}, preset=spec.preset).utd
+                        fields["utd"] = resolve_config(env_id, {"method": "pimbrl", "agent": agent}, preset=spec.preset).utd
                     first = resolve_config(env_id, {**fields, "seed": spec.seeds_of(arm)[0]}, preset=spec.preset)
                 except ConfigError as exc:
                     raise ConfigError(f"{where}: {exc}") from None

@@ -351,8 +351,9 @@ def import_record(spec: StudySpec) -> dict[str, Any]:
         setting = run.pop("setting", "default")
         if setting not in grid:
             raise ConfigError(f"{where} has the setting {setting!r}, not one of the spec's ({', '.join(sorted(grid))})")
-        if run["seed"] not in spec.seeds:
-            raise ConfigError(f"{where}: seed {run['seed']} is not one of the spec's seeds")
+        if run["seed"] not in spec.seeds_of(arm):
+            whose = f"arm {arm.name}" if arm.seeds else "the spec"
+            raise ConfigError(f"{where}: seed {run['seed']} is not one of {whose}'s seeds")
         ident = (system, arm_name, setting, run["seed"])
         if ident in seen:
             raise ConfigError(f"{where} is given twice (system, arm, setting and seed); select or relabel the runs apart")
@@ -402,13 +403,17 @@ def _settings(spec: StudySpec) -> set[str]:
 def _check_complete(spec: StudySpec, runs: list[dict[str, Any]], path: Path) -> None:
     """Every arm and seed the spec declares has a run in the record (the spec says what the record holds)."""
     arms = {r["arm"] for r in runs}
-    seeds = {r["seed"] for r in runs}
-    for arm in spec.arm_names:
-        if arm not in arms:
+    pairs = {(r["arm"], r["seed"]) for r in runs}
+    for arm in spec.arms:
+        if arm.name not in arms:
             raise ConfigError(
-                f"{path}: the spec's arm {arm!r} has no run in the record (relabel or select its runs, or drop the arm)"
+                f"{path}: the spec's arm {arm.name!r} has no run in the record (relabel or select its runs, or drop the arm)"
             )
-    for seed in spec.seeds:
+        for seed in arm.seeds:  # an arm's own seeds: each has its run
+            if (arm.name, seed) not in pairs:
+                raise ConfigError(f"{path}: arm {arm.name!r}'s seed {seed} has no run in the record")
+    seeds = {seed for _, seed in pairs}
+    for seed in spec.seeds:  # the spec's: each has a run of some arm (an old record may give an arm fewer)
         if seed not in seeds:
             raise ConfigError(f"{path}: the spec's seed {seed} has no run in the record")
 

@@ -328,8 +328,8 @@ def _tuning_choices(spec: StudySpec, group: dict[str, Any]) -> dict[str, Any]:
 def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
     first = next(iter(spec.tuning.values()))
     lines = [
-        f"Tuning ({len(first)} candidates x {len(spec.seeds_of(first[0]))} seeds per method, chosen by the IQM of the {spec.outcome} return on "
-        "the validation draws; no test state was read):",
+        f"Tuning ({len(first)} candidates x {len(spec.seeds_of(first[0]))} seeds per method, chosen by the IQM of the "
+        f"{spec.outcome} return on the validation draws; no test state was read):",
         "",
         "| method | candidates (IQM) | chosen |",
         _separator(3),

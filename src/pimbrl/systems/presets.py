@@ -120,9 +120,8 @@ def _recipe(name: str, body: Any, where: str) -> Recipe:
         if not isinstance(value, Mapping) or not all(
             isinstance(k, str) and isinstance(v, Mapping) and all(isinstance(p, str) for p in v) for k, v in value.items()
         ):
-            raise PresetError(
-                f"{where}: recipe {name!r}: {key} must map {key[:-1]} names to settings (e.g. pimbrl: {{physics.weight: 0.01}})"
-            )
+            example = "pimbrl: {physics.weight: 0.01}" if key == "methods" else "crossq: {agent.actor_lr: 0.001}"
+            raise PresetError(f"{where}: recipe {name!r}: {key} must map {key[:-1]} names to settings (e.g. {example})")
     for key in ("about", "chosen_by", "method", "agent"):
         if not isinstance(body.get(key, ""), str):
             raise PresetError(f"{where}: recipe {name!r}: {key} must be a string")

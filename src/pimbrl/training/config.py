@@ -441,21 +441,47 @@ def _build(env: str, method: str, agent: str, flat: Mapping[str, Any]) -> TrainC
 def recipe_settings(recipe: Any, model_based: bool, method: str = "", agent: str = "") -> dict[str, Any]:
     """A recipe's settings for a method with or without a model, typed (the method and agent are its own keys).
 
-    ``method`` and ``agent`` add the recipe's settings for them (its ``methods:`` and ``agents:``); a name
-    there that is no method or agent is a :class:`ConfigError` (it would never apply).
+    ``method`` and ``agent`` add the recipe's settings for them (its ``methods:`` and ``agents:``; ``agent``
+    empty for a method that trains none). Each of those sections is checked whichever method runs, each a
+    one-line :class:`ConfigError`: a name that is no method or agent, a value of the wrong type, a
+    ``threshold`` (a study reads one per system: it belongs in ``settings:``), and a setting its own method
+    (agent) does not have (it would never apply; ``agent.*`` settings of a method's section depend on the agent).
     """
-    for key, names, known in (("methods", recipe.methods, METHODS), ("agents", recipe.agents, AGENT_NAMES)):
-        for name in names:
+    where = f"recipe {recipe.name!r}"
+    for key, sections, known in (("methods", recipe.methods, METHODS), ("agents", recipe.agents, AGENT_NAMES)):
+        for name, section in sections.items():
             if name not in known:
                 raise ConfigError(
-                    f"recipe {recipe.name!r}: {key} names {name!r}{did_you_mean(name, known)}, which is not one of "
+                    f"{where}: {key} names {name!r}{did_you_mean(name, known)}, which is not one of "
                     f"{', '.join(known)}; fix the system's preset file"
                 )
+            try:
+                typed_overrides(section)
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {key}: {name}: {exc}") from None
+            for path in section:
+                if path in ("threshold", "method", "agent"):
+                    raise ConfigError(
+                        f"{where}: {key}: {name}: {path} belongs in the recipe's settings (or its own key), not here"
+                    )
+                if key == "methods":
+                    lacks = not path.startswith("agent.") and not has_setting(name, "td3", path)
+                else:
+                    lacks = path.partition(".")[0] == "agent" and not has_setting("mfrl", name, path)
+                if lacks:
+                    raise ConfigError(
+                        f"{where}: {key}: {name}: a {name} run has no setting {path!r}; fix the system's preset file"
+                    )
     settings = recipe.for_method(model_based, method, agent)
     for key in ("method", "agent"):
         if key in settings:
-            raise ConfigError(f"recipe {recipe.name!r}: {key} is chosen by the recipe's own '{key}:' key, not among its settings")
+            raise ConfigError(f"{where}: {key} is chosen by the recipe's own '{key}:' key, not among its settings")
     return typed_overrides(settings)
+
+
+def _recipe_for_run(recipe: Any, method: str, agent: str) -> dict[str, Any]:
+    """The recipe's typed settings for a run of ``method`` with ``agent`` (a control method: no agent's section)."""
+    return recipe_settings(recipe, method != "mfrl", method, "" if method in CONTROL_METHODS else agent)
 
 
 def run_names(env: str, overrides: Mapping[str, Any], preset: str | None = None) -> tuple[str, str]:
@@ -489,7 +515,7 @@ def resolve_config(env: str, overrides: Mapping[str, Any] | None = None, *, pres
         reason = inapplicable_reason(env, method, agent, path)
         if reason is not None:
             raise ConfigError(reason)
-    base = {} if recipe is None else recipe_settings(recipe, method != "mfrl", method, agent)
+    base = {} if recipe is None else _recipe_for_run(recipe, method, agent)
     base = {k: v for k, v in base.items() if has_setting(method, agent, k)}
     merged = {**base, **typed}
     if "env_kwargs" in base and "env_kwargs" in typed:  # the user's keyword arguments go on top of the recipe's
@@ -764,7 +790,10 @@ def return_scale_warnings(cfg: TrainConfig, preset: str | None = None) -> list[s
         return []
     if recipe is None:
         return []
-    settings = recipe.for_method(cfg.model_based, cfg.method.name, "" if cfg.control else cfg.agent.name)
+    try:
+        settings = _recipe_for_run(recipe, cfg.method.name, cfg.agent.name)
+    except ConfigError:
+        return []
     kept = []  # (name, value, what it does, how to fix it)
     if settings.get("threshold") is not None and cfg.threshold == settings["threshold"]:
         kept.append(
