@@ -187,8 +187,23 @@ def test_the_paper_recipe_has_the_paper_s_values_and_best_names_its_study() -> N
     assert best.method == "known-scheme" and "EXPLORATORY" in best.chosen_by and "test states" in best.chosen_by
     cfg = resolve_config(KS, {"seed": 3}, preset="best")
     assert cfg.method.name == "known-scheme" and cfg.method.imagine.rollout_length == 25 and cfg.seed == 3
-    with pytest.raises(ConfigError, match=r"^--preset best: pimbrl/Burgers-v0 has the recipes default, paper$"):
-        resolve_config("pimbrl/Burgers-v0", preset="best")
+    with pytest.raises(ConfigError, match=r"^--preset best: pimbrl/CartPole-v0 has the recipes default, paper$"):
+        resolve_config("pimbrl/CartPole-v0", preset="best")
+
+
+def test_burgers_best_recipe_holds_its_tuning_study_s_choices_as_the_confirmatory_spec_does() -> None:
+    from pimbrl.experiments.spec import load_spec
+    from pimbrl.training.config import get_setting
+
+    best = recipe_of("pimbrl/Burgers-v0", "best")
+    assert "tune-burgers" in best.chosen_by and "validation" in best.chosen_by and best.method == "mpc"
+    assert (ROOT / "benchmarks" / "results" / "tune-burgers.json").is_file()
+    spec = load_spec(ROOT / "benchmarks" / "confirmatory" / "confirmatory-burgers.yaml")
+    assert spec.kind == "confirmatory" and spec.outcome == "holdout" and min(spec.seeds) >= 100  # no tuning seed
+    for arm in spec.arms:  # the spec's settings are the recipe's (each arm's own overrides)
+        cfg = resolve_config("pimbrl/Burgers-v0", {"method": arm.method}, preset="best")
+        for path, value in arm.overrides.items():
+            assert get_setting(cfg, path) == (tuple(value) if isinstance(value, list) else value), (arm.name, path)
 
 
 def test_running_a_recipe_says_which_and_who_chose_it(capsys) -> None:
