@@ -129,6 +129,11 @@ class Arm:
     seeds: tuple[int, ...] = ()
 
 
+def _arm_seeds(arm: Arm, seeds: tuple[int, ...]) -> tuple[int, ...]:
+    """The seeds ``arm`` runs: its own, else the spec's ``seeds`` (also while the spec is being read)."""
+    return arm.seeds or seeds
+
+
 @dataclass(frozen=True)
 class Hypothesis:
     """A claim the report answers: ``better`` beats ``than`` on ``metric`` (on ``system``, or each system)."""
@@ -197,8 +202,7 @@ class StudySpec:
 
     def seeds_of(self, arm: str | Arm) -> tuple[int, ...]:
         """The seeds ``arm`` runs: its own, else the spec's."""
-        a = self.arm(arm) if isinstance(arm, str) else arm
-        return a.seeds or self.seeds
+        return _arm_seeds(self.arm(arm) if isinstance(arm, str) else arm, self.seeds)
 
     def arm(self, name: str) -> Arm:
         """The arm called ``name``."""
@@ -334,7 +338,7 @@ def _tuning(
     overrides: Mapping[str, Any],
     grid: Mapping[str, Sequence[Any]],
     outcome: str,
-    seeds: Sequence[int],
+    seeds: tuple[int, ...],
     where: str,
 ) -> dict[str, tuple[str, ...]]:
     """A tuning study's candidates per method family, checked.
@@ -373,7 +377,7 @@ def _tuning(
     if len(set(sizes.values())) > 1:
         listed = ", ".join(f"{f} {n}" for f, n in sizes.items())
         raise _fail(where, f"'tuning': the methods have unequal budgets ({listed} candidates); give each as many")
-    counts = {len(by_name[arm].seeds or seeds) for candidates in value.values() for arm in candidates}
+    counts = {len(_arm_seeds(by_name[arm], seeds)) for candidates in value.values() for arm in candidates}
     if len(counts) > 1:
         raise _fail(
             where,
@@ -537,7 +541,7 @@ def parse_spec(data: Any, *, where: str = "spec", base: Path | None = None, text
         raise _fail(where, f"'layout' must be auto, compact or full, got {layout!r}")
     if layout == "compact" and (len(systems) > 1 or grid):
         raise _fail(where, "'layout: compact' is for one system without a grid")
-    n_runs = len(systems) * sum(len(a.seeds or seeds) for a in arms) * math.prod(len(v) for v in grid.values())
+    n_runs = len(systems) * sum(len(_arm_seeds(a, seeds)) for a in arms) * math.prod(len(v) for v in grid.values())
     if n_runs > MAX_RUNS:
         raise _fail(where, f"{n_runs:,} runs are more than a study plans ({MAX_RUNS:,} at most); give fewer")
     name = data.get("name", Path(where).stem if where.endswith((".yaml", ".yml")) else "study")
