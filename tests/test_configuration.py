@@ -560,6 +560,46 @@ def test_a_recipe_gives_each_method_and_agent_its_own_settings_on_top() -> None:
             recipe_settings(bad, False, "mfrl", "td3")
 
 
+def test_a_recipe_extends_another_section_by_section_and_a_bad_chain_is_one_line() -> None:
+    from pimbrl.systems.presets import PresetError, load_presets
+
+    data = {"recipes": {"default": {"about": "base", "method": "pimbrl", "settings": {"total_steps": 300, "eval_every": 50},
+                                    "model_based": {"utd": 5.0, "fit.steps": 10},
+                                    "methods": {"pimbrl": {"physics.weight": 0.1, "model.start_after": 50}},
+                                    "agents": {"redq": {"utd": 5.0}}},
+                        "paper": {"about": "paper", "extends": "default", "model_based": {"utd": 1.0},
+                                  "methods": {"pimbrl": {"physics.weight": 0.01}}},
+                        "best": {"extends": "paper", "method": "mpc", "chosen_by": "a study",
+                                 "settings": {"total_steps": 600}}}}  # fmt: skip
+    _, recipes = load_presets(data)
+    paper, best = recipes["paper"], recipes["best"]
+    assert paper.about == "paper" and paper.method == "pimbrl" and paper.extends == "default"
+    assert paper.for_method(True, "pimbrl", "redq") == {"total_steps": 300, "eval_every": 50, "utd": 5.0, "fit.steps": 10,
+                                                        "physics.weight": 0.01, "model.start_after": 50}  # fmt: skip
+    assert paper.for_method(True, "pimbrl", "td3")["utd"] == 1.0  # the agent's section is last, as without extends
+    assert best.method == "mpc" and best.about == "" and best.chosen_by == "a study"  # about/chosen_by are its own
+    assert best.for_method(True, "pimbrl")["total_steps"] == 600 and best.for_method(True, "pimbrl")["physics.weight"] == 0.01
+    assert recipes["default"].for_method(True, "pimbrl")["physics.weight"] == 0.1  # the parent is untouched
+    for recipes_, message in (({"a": {"extends": "nope"}}, r"recipe 'a' extends 'nope', which is not among the recipes \(a\)"),
+                              ({"a": {"extends": "a"}}, r"in a cycle \(a -> a\)"),
+                              ({"a": {"extends": "b"}, "b": {"extends": "c"}, "c": {"extends": "b"}}, r"in a cycle \(b -> c -> b\)"),
+                              ({"a": {"extends": ["b"]}, "b": {}}, "recipe 'a': extends must be a string")):  # fmt: skip
+        with pytest.raises(PresetError, match=message):
+            load_presets({"default": "a", "recipes": recipes_}, where="x")
+
+
+def test_the_built_in_paper_and_best_recipes_extend_default_and_differ_only_where_they_say() -> None:
+    burgers = load_presets(ROOT / "src" / "pimbrl" / "systems" / "burgers.yaml")[1]
+    assert burgers["paper"].extends == "default" and burgers["best"].extends == "default"
+    default, paper = burgers["default"].for_method(True, "pimbrl"), burgers["paper"].for_method(True, "pimbrl")
+    assert {k for k in default if default[k] != paper[k]} == {"utd"} and paper["utd"] == 1.0 and default["utd"] == 5.0
+    ks = load_presets(ROOT / "src" / "pimbrl" / "systems" / "ks.yaml")[1]
+    assert ks["best"].extends == ""  # KS's best changes most settings: it is written out whole
+    ks_paper = resolve_config(KS, {"method": "pimbrl"}, preset="paper")
+    assert ks_paper.total_steps == 200_000 and ks_paper.method.imagine.reward_quadrature == "path"
+    assert ks_paper.method.fit.steps == 10 and ks_paper.method.finetune.at_return == -55.0  # from default
+
+
 def test_a_recipes_method_and_agent_sections_reach_the_run_and_a_controller_gets_no_agents(monkeypatch) -> None:
     from pimbrl.systems.presets import load_presets
     from pimbrl.training import config as config_module

@@ -21,6 +21,15 @@ A preset file holds recipes by name and says which one a run gets without ``--pr
           pimbrl: {physics.weight: 0.01}
         agents:                # on top of those, for one agent each
           crossq: {agent.actor_lr: 0.001}
+      paper:
+        about: ...
+        extends: default       # the default recipe's sections, with this recipe's entries on top
+        model_based: {utd: 1.0}
+
+A recipe that ``extends`` another starts from that recipe's ``settings``, ``model_based``, ``methods`` and
+``agents`` (section by section, its own entries winning one setting at a time) and its ``method`` and
+``agent`` unless it names its own; ``about`` and ``chosen_by`` are the recipe's own. Chains are followed; a
+cycle or a missing parent is an error.
 
 Settings are the paths of the training configuration (``utd``, ``agent.gamma``, ``fit.steps``, ...). A
 recipe's setting that the chosen method does not have is skipped (a recipe serves every method); the
@@ -38,7 +47,7 @@ from typing import Any
 
 __all__ = ["PresetError", "Recipe", "load_presets"]
 
-_RECIPE_KEYS = {"about", "chosen_by", "method", "agent", "settings", "model_based", "methods", "agents"}
+_RECIPE_KEYS = {"about", "chosen_by", "extends", "method", "agent", "settings", "model_based", "methods", "agents"}
 
 
 class PresetError(ValueError):
@@ -59,6 +68,7 @@ class Recipe:
         model_based: configuration paths -> values, on top for the methods with a model.
         methods: method name -> (configuration paths -> values), on top for that method.
         agents: agent name -> (configuration paths -> values), on top (last) for that agent.
+        extends: the recipe it was built on (its sections already merged in here), else ``""``.
     """
 
     name: str
@@ -70,6 +80,7 @@ class Recipe:
     model_based: Mapping[str, Any] = field(default_factory=dict)
     methods: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     agents: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    extends: str = ""
 
     def for_method(self, model_based: bool, method: str = "", agent: str = "") -> dict[str, Any]:
         """The recipe's settings for a method with (``True``) or without a model; ``method``'s and ``agent``'s own on top."""
@@ -122,7 +133,7 @@ def _recipe(name: str, body: Any, where: str) -> Recipe:
         ):
             example = "pimbrl: {physics.weight: 0.01}" if key == "methods" else "crossq: {agent.actor_lr: 0.001}"
             raise PresetError(f"{where}: recipe {name!r}: {key} must map {key[:-1]} names to settings (e.g. {example})")
-    for key in ("about", "chosen_by", "method", "agent"):
+    for key in ("about", "chosen_by", "extends", "method", "agent"):
         if not isinstance(body.get(key, ""), str):
             raise PresetError(f"{where}: recipe {name!r}: {key} must be a string")
     return Recipe(
@@ -135,7 +146,52 @@ def _recipe(name: str, body: Any, where: str) -> Recipe:
         model_based=dict(body.get("model_based") or {}),
         methods={str(k): dict(v) for k, v in (body.get("methods") or {}).items()},
         agents={str(k): dict(v) for k, v in (body.get("agents") or {}).items()},
+        extends=body.get("extends", ""),
     )
+
+
+def _merged(child: Recipe, parent: Recipe) -> Recipe:
+    """``child`` on top of ``parent``: each section merged one setting at a time, the child's entries winning."""
+
+    def nested(mine: Mapping[str, Mapping[str, Any]], theirs: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+        return {k: {**theirs.get(k, {}), **mine.get(k, {})} for k in {**theirs, **mine}}
+
+    return Recipe(
+        name=child.name,
+        about=child.about,
+        chosen_by=child.chosen_by,
+        method=child.method or parent.method,
+        agent=child.agent or parent.agent,
+        settings={**parent.settings, **child.settings},
+        model_based={**parent.model_based, **child.model_based},
+        methods=nested(child.methods, parent.methods),
+        agents=nested(child.agents, parent.agents),
+        extends=child.extends,
+    )
+
+
+def _resolve_extends(recipes: dict[str, Recipe], where: str) -> dict[str, Recipe]:
+    """Every recipe with the recipes it extends merged in (chains followed; a cycle or a missing parent is an error)."""
+    done: dict[str, Recipe] = {}
+
+    def resolve(name: str, chain: tuple[str, ...]) -> Recipe:
+        if name in done:
+            return done[name]
+        recipe = recipes[name]
+        if recipe.extends:
+            if recipe.extends not in recipes:
+                raise PresetError(
+                    f"{where}: recipe {name!r} extends {recipe.extends!r}, which is not among the recipes ({', '.join(recipes)})"
+                )
+            if recipe.extends in (*chain, name):
+                path = (*chain, name, recipe.extends)
+                cycle = " -> ".join(path[path.index(recipe.extends) :])
+                raise PresetError(f"{where}: recipes extend each other in a cycle ({cycle}); one of them must extend nothing")
+            recipe = _merged(recipe, resolve(recipe.extends, (*chain, name)))
+        done[name] = recipe
+        return recipe
+
+    return {name: resolve(name, ()) for name in recipes}
 
 
 def load_presets(source: str | Path | Mapping[str, Any] | None, where: str = "preset") -> tuple[str, dict[str, Recipe]]:
@@ -150,7 +206,7 @@ def load_presets(source: str | Path | Mapping[str, Any] | None, where: str = "pr
     recipes = data.get("recipes")
     if not isinstance(recipes, Mapping) or not recipes:
         raise PresetError(f"{where}: a preset needs 'recipes', a mapping of named recipes (default, paper, best, ...)")
-    out = {str(name): _recipe(str(name), body, where) for name, body in recipes.items()}
+    out = _resolve_extends({str(name): _recipe(str(name), body, where) for name, body in recipes.items()}, where)
     default = data.get("default", "default")
     if default not in out:
         raise PresetError(f"{where}: the default recipe {default!r} is not among the recipes ({', '.join(out)})")
