@@ -340,6 +340,47 @@ def test_a_confirmatory_spec_must_be_committed_and_unchanged(tmp_path) -> None:
     assert study_label(load_spec(_spec(tmp_path)), {})[0] == "exploratory"
 
 
+@pytest.mark.slow
+def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_those_still_running(tmp_path) -> None:
+    from pimbrl.experiments.report import write_pages
+
+    repo = tmp_path / "repo"
+    (repo / "benchmarks" / "confirmatory").mkdir(parents=True)
+    _git(repo, "init", "-q")
+    hypotheses = {"H1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
+    body = {"kind": "confirmatory", "methods": ["mfrl", "mbrl"], "seeds": [0, 1, 2, 3, 4], "hypotheses": hypotheses,
+            "record": {"path": "done.json", "format": "study"}}  # fmt: skip
+    done = _spec(repo / "benchmarks" / "confirmatory", name="done.yaml", **body)
+    running = _spec(
+        repo / "benchmarks" / "confirmatory", name="running.yaml", **{**body, "record": {"path": "r.json", "format": "study"}}
+    )
+    explored = _spec(repo, name="explored.yaml", record={"path": "explored.json", "format": "study"})
+    _git(repo, "add", ".")
+    time.sleep(1.1)  # commit times are whole seconds: the first start comes after the commit
+    _git(repo, "commit", "-q", "-m", "register")
+    time.sleep(1.1)
+    spec = load_spec(done)
+    (tmp_path / "run").mkdir()
+    registration = start_study(spec, tmp_path / "run")
+    runs = [{"system": "pimbrl/Pendulum-v0", "arm": arm, "setting": "default", "seed": seed, "finished": True, "steps": 80,
+             "final_return": base + seed, "curve": {"step": [80], "return_mean": [base + seed], "return_min": [0], "return_max": [0]}}
+            for arm, base in (("mfrl", -900.0), ("mbrl", -700.0)) for seed in range(5)]  # fmt: skip
+    record = {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256, "registration": registration}
+    (done.parent / "done.json").write_text(json.dumps(record))
+    (repo / "explored.json").write_text(json.dumps({**record, "registration": None}))
+    docs = repo / "docs"
+    write_pages([load_spec(explored), spec, load_spec(running)], docs)
+    page = (docs / "results.md").read_text()
+    assert page.index("## done (confirmatory)") < page.index("## explored (exploratory)")  # confirmatory first
+    assert "Confirmatory studies: [done](#done-confirmatory); registered, without a record yet: running." in page
+    assert "| [done](#done-confirmatory) | H1 | mbrl beats mfrl | Pendulum-v0 | 1.00 [1.00, 1.00] (95%) | supported |" in page
+    reproduce = (docs / "reproduce.md").read_text()
+    assert "`pimbrl study run benchmarks/confirmatory/done.yaml --run-dir runs/done`" in reproduce
+    (repo / "explored.json").unlink()
+    with pytest.raises(FileNotFoundError, match="study explored: its record"):  # only a confirmatory one may wait
+        write_pages([load_spec(explored)], docs)
+
+
 # ---------------------------------------------------------------------------------- the command line and compare
 @pytest.mark.slow
 def test_study_commands_plan_run_and_report(tmp_path, capsys) -> None:
@@ -405,6 +446,12 @@ def test_the_generated_pages_cover_every_study_and_links_into_them_resolve() -> 
     reproduce = (repo / "docs" / "reproduce.md").read_text()
     assert results.splitlines()[2] == GENERATED and reproduce.splitlines()[2] == GENERATED
     specs = sorted((repo / "benchmarks" / "studies").glob("*.yaml"))
+    for path in sorted((repo / "benchmarks" / "confirmatory").glob("*.yaml")):  # registered: a section once recorded
+        spec = load_spec(path)
+        if spec.record is not None and spec.record.path.is_file():
+            specs.append(path)
+        else:
+            assert f"## {spec.name} (" not in results, f"docs/results.md has {spec.name} but its record is gone"
     anchors = set()
     for path in specs:
         spec = load_spec(path)
