@@ -581,6 +581,7 @@ def test_a_recipe_extends_another_section_by_section_and_a_bad_chain_is_one_line
     assert best.for_method(True, "pimbrl")["total_steps"] == 600 and best.for_method(True, "pimbrl")["physics.weight"] == 0.01
     assert recipes["default"].for_method(True, "pimbrl")["physics.weight"] == 0.1  # the parent is untouched
     for recipes_, message in (({"a": {"extends": "nope"}}, r"recipe 'a' extends 'nope', which is not among the recipes \(a\)"),
+                              ({"a": {"extends": "bets"}, "best": {}}, r"not among the recipes \(a, best\) \(did you mean 'best'\?\)$"),
                               ({"a": {"extends": "a"}}, r"in a cycle \(a -> a\)"),
                               ({"a": {"extends": "b"}, "b": {"extends": "c"}, "c": {"extends": "b"}}, r"in a cycle \(b -> c -> b\)"),
                               ({"a": {"extends": ["b"]}, "b": {}}, "recipe 'a': extends must be a string")):  # fmt: skip

@@ -347,7 +347,7 @@ def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_th
     repo = tmp_path / "repo"
     (repo / "benchmarks" / "confirmatory").mkdir(parents=True)
     _git(repo, "init", "-q")
-    hypotheses = {"H1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
+    hypotheses = {"H 1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
     body = {"kind": "confirmatory", "methods": ["mfrl", "mbrl"], "seeds": [0, 1, 2, 3, 4], "hypotheses": hypotheses,
             "record": {"path": "done.json", "format": "study"}}  # fmt: skip
     done = _spec(repo / "benchmarks" / "confirmatory", name="done.yaml", **body)
@@ -372,10 +372,19 @@ def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_th
     write_pages([load_spec(explored), spec, load_spec(running)], docs)
     page = (docs / "results.md").read_text()
     assert page.index("## done (confirmatory)") < page.index("## explored (exploratory)")  # confirmatory first
-    assert "Confirmatory studies: [done](#done-confirmatory); registered, without a record yet: running." in page
-    assert "| [done](#done-confirmatory) | H1 | mbrl beats mfrl | Pendulum-v0 | 1.00 [1.00, 1.00] (95%) | supported |" in page
+    assert "Confirmatory studies: [done](#done-confirmatory); confirmatory specs without a record yet: running." in page
+    row = "| [done](#done-confirmatory) | H 1 | mbrl beats mfrl | Pendulum-v0 | final return | 1.00 [1.00, 1.00] (95%) | supported |"
+    assert row in page  # an id with a space is still the id
+    assert "- **Command**: `pimbrl study run benchmarks/confirmatory/done.yaml && pimbrl study report" in page
     reproduce = (docs / "reproduce.md").read_text()
     assert "`pimbrl study run benchmarks/confirmatory/done.yaml --run-dir runs/done`" in reproduce
+    assert "| running | confirmatory spec, no record yet | `pimbrl study run benchmarks/confirmatory/running.yaml" in reproduce
+    done.write_text(done.read_text().replace('"seeds": [0, 1, 2, 3, 4]', '"seeds": [4, 3, 2, 1, 0]'))  # changed: demoted
+    write_pages([load_spec(explored), load_spec(done)], docs)
+    page = (docs / "results.md").read_text()
+    assert "Confirmatory studies: none with a record yet; confirmatory specs whose record is exploratory: " in page
+    assert "[done](#done-exploratory) (the spec changed after its first run started" in page
+    assert "| H 1 |" not in page.split("Studies:")[0]  # no verdict table for a demoted study
     (repo / "explored.json").unlink()
     with pytest.raises(FileNotFoundError, match="study explored: its record"):  # only a confirmatory one may wait
         write_pages([load_spec(explored)], docs)
@@ -477,7 +486,7 @@ def _fake_runs(arms: dict[str, float], seeds: int, finished: bool = True) -> lis
 
 
 def test_unfinished_runs_are_left_out_and_make_hypotheses_inconclusive(tmp_path) -> None:
-    hypotheses = {"H1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
+    hypotheses = {"H 1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
     spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], seeds=6, hypotheses=hypotheses, statistics={"reps": 200}))
     runs = _fake_runs({"mfrl": -900.0, "mbrl": -700.0}, 6)
     record = {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256}

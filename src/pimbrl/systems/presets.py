@@ -27,9 +27,12 @@ A preset file holds recipes by name and says which one a run gets without ``--pr
         model_based: {utd: 1.0}
 
 A recipe that ``extends`` another starts from that recipe's ``settings``, ``model_based``, ``methods`` and
-``agents`` (section by section, its own entries winning one setting at a time) and its ``method`` and
-``agent`` unless it names its own; ``about`` and ``chosen_by`` are the recipe's own. Chains are followed; a
-cycle or a missing parent is an error.
+``agents`` (section by section, its own entries winning one setting at a time within a section) and its
+``method`` and ``agent`` unless it names its own; ``about`` and ``chosen_by`` are the recipe's own. The order
+of the sections still holds across the two recipes: a setting in the parent's ``model_based`` (or
+``methods``/``agents``) section wins over the same setting in the child's ``settings``; put the child's
+entry in the same section to change it. An inherited entry cannot be removed, only given another value.
+Chains are followed; a cycle or a missing parent is an error.
 
 Settings are the paths of the training configuration (``utd``, ``agent.gamma``, ``fit.steps``, ...). A
 recipe's setting that the chosen method does not have is skipped (a recipe serves every method); the
@@ -180,8 +183,13 @@ def _resolve_extends(recipes: dict[str, Recipe], where: str) -> dict[str, Recipe
         recipe = recipes[name]
         if recipe.extends:
             if recipe.extends not in recipes:
+                import difflib
+
+                close = difflib.get_close_matches(recipe.extends, list(recipes), n=1, cutoff=0.6)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
                 raise PresetError(
-                    f"{where}: recipe {name!r} extends {recipe.extends!r}, which is not among the recipes ({', '.join(recipes)})"
+                    f"{where}: recipe {name!r} extends {recipe.extends!r}, which is not among the recipes "
+                    f"({', '.join(recipes)}){hint}"
                 )
             if recipe.extends in (*chain, name):
                 path = (*chain, name, recipe.extends)
