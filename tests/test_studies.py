@@ -486,7 +486,7 @@ def _fake_runs(arms: dict[str, float], seeds: int, finished: bool = True) -> lis
 
 
 def test_unfinished_runs_are_left_out_and_make_hypotheses_inconclusive(tmp_path) -> None:
-    hypotheses = {"H 1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
+    hypotheses = {"H1": {"claim": "mbrl beats mfrl", "better": "mbrl", "than": "mfrl"}}
     spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], seeds=6, hypotheses=hypotheses, statistics={"reps": 200}))
     runs = _fake_runs({"mfrl": -900.0, "mbrl": -700.0}, 6)
     record = {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256}
