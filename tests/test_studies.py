@@ -341,7 +341,7 @@ def test_a_confirmatory_spec_must_be_committed_and_unchanged(tmp_path) -> None:
 
 
 @pytest.mark.slow
-def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_those_still_running(tmp_path) -> None:
+def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_those_still_running(tmp_path, monkeypatch) -> None:
     from pimbrl.experiments.report import write_pages
 
     repo = tmp_path / "repo"
@@ -369,6 +369,7 @@ def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_th
     (done.parent / "done.json").write_text(json.dumps(record))
     (repo / "explored.json").write_text(json.dumps({**record, "registration": None}))
     docs = repo / "docs"
+    monkeypatch.chdir(repo)  # the commands name each spec as seen from where the pages are made (the repository)
     write_pages([load_spec(explored), spec, load_spec(running)], docs)
     page = (docs / "results.md").read_text()
     assert page.index("## done (confirmatory)") < page.index("## explored (exploratory)")  # confirmatory first
@@ -607,3 +608,26 @@ def test_the_watchdog_spares_what_the_driver_had_before_it(tmp_path) -> None:
         assert _state(before) not in ("gone", "Z"), "the watchdog killed a process the driver had before it"
     finally:
         os.kill(before, signal.SIGKILL)
+
+
+@pytest.mark.slow
+def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_confirmatory_spec_s_arms() -> None:
+    """tune-burgers's record, reported: its choices are confirmatory-burgers's arms, entry for entry."""
+    import dataclasses
+
+    import yaml
+
+    repo = Path(__file__).resolve().parents[1]
+    spec = dataclasses.replace(load_spec(repo / "benchmarks" / "pending" / "tune-burgers.yaml"), reps=200)
+    report = study_report(spec, load_record(spec))
+    rules = report.stats["groups"]["pimbrl/Burgers-v0 default"]["tuning_rules"]
+    assert rules == {"tuned model-free arm": "mfrl-matched", "best RL arm": "mfrl-matched"}
+    assert "the tuned model-free arm is mfrl-matched (-9.767) and the best RL arm is mfrl-matched (-9.767)" in report.markdown
+    block = report.markdown.split("```yaml\n")[1].split("```")[0]
+    entries = yaml.safe_load(block)
+    assert set(entries) == set(spec.tuning) and entries["dpc"] == {"method": "dpc", "overrides": {"model.horizon": 40}}
+    confirmatory = load_spec(repo / "benchmarks" / "confirmatory" / "confirmatory-burgers.yaml")
+    for arm in confirmatory.arms:  # the registered arms are the report's entries
+        entry = entries[arm.name]
+        assert (entry["method"], entry.get("match_updates", False)) == (arm.method, arm.match_updates), arm.name
+        assert {k: tuple(v) if isinstance(v, list) else v for k, v in entry["overrides"].items()} == arm.overrides, arm.name

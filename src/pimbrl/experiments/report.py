@@ -232,6 +232,8 @@ def study_report(
         if spec.tuning:
             chosen = _tuning_choices(spec, group)
             computed["groups"][key]["tuning"] = chosen
+            if all(c["chosen"] for c in chosen.values()):
+                computed["groups"][key]["tuning_rules"] = _rule_choices(spec, chosen)
             lines += ["", *_tuning_table(spec, chosen)]
         pairs = [p for p in spec.comparisons if p[0] in group and p[1] in group]
         if pairs:
@@ -339,7 +341,47 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
     for family, c in chosen.items():
         listed = ", ".join(f"{arm} ({c['iqm'][arm]:.4g})" if arm in c["iqm"] else f"{arm} (no runs)" for arm in c["candidates"])
         lines.append(f"| {_cell(family)} | {_cell(listed)} | {_cell(c['chosen'] or 'not yet: runs missing or unfinished')} |")
-    return lines
+    if not all(c["chosen"] for c in chosen.values()):
+        return lines
+    rules = _rule_choices(spec, chosen)
+    named = [f"the {what} is {f} ({chosen[f]['iqm'][chosen[f]['chosen']]:.4g})" for what, f in rules.items() if f]
+    if named:
+        lines += ["", f"By the rule of docs/confirmatory.md, {' and '.join(named)}."]
+    lines += ["", "The choices as a confirmatory spec's arms, one per method (to paste under `methods:`):", "", "```yaml"]
+    for family, c in chosen.items():
+        lines.append(f"  {family}: {_arm_entry(spec.arm(c['chosen']))}  # {c['chosen']}")
+    return [*lines, "```"]
+
+
+def _rule_choices(spec: StudySpec, chosen: dict[str, Any]) -> dict[str, str | None]:
+    """The two arms docs/confirmatory.md chooses by rule: the tuned model-free arm and the best RL arm.
+
+    Each is the family (among the model-free ones; among every family that is not a controller) whose chosen
+    candidate has the highest IQM, the first listed on a tie; ``None`` where the study has no such family.
+    """
+    from ..training.methods import CONTROL_METHODS
+
+    def best(families: list[str]) -> str | None:
+        scores = {f: chosen[f]["iqm"][chosen[f]["chosen"]] for f in families}
+        return max(families, key=lambda f: scores[f]) if families else None
+
+    method = {f: spec.arm(c["chosen"]).method for f, c in chosen.items()}
+    return {
+        "tuned model-free arm": best([f for f in chosen if method[f] == "mfrl"]),
+        "best RL arm": best([f for f in chosen if method[f] not in CONTROL_METHODS]),
+    }
+
+
+def _arm_entry(arm: Any) -> str:
+    """An arm as a spec's one-line entry (JSON is YAML): its method, match_updates and overrides."""
+    import json
+
+    entry: dict[str, Any] = {"method": arm.method}
+    if arm.match_updates:
+        entry["match_updates"] = True
+    if arm.overrides:
+        entry["overrides"] = arm.overrides
+    return json.dumps(entry, default=list)
 
 
 def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: str, link_base: str | Path | None) -> list[str]:
@@ -361,7 +403,7 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
         if spec.record.note:
             lines.append(f"- **Note**: {spec.record.note.strip()}")
     else:
-        name = _spec_path(spec, Path(link_base).parent if link_base is not None else None)
+        name = _spec_path(spec, Path.cwd())  # as the command that made the report named it, from where it ran
         lines.append(f"- **Command**: `pimbrl study run {name} && pimbrl study report {name}`")
     cpu = ", ".join(c for c in cpus if c != "None") or prov.get("cpu") or "not recorded"
     if cpu == "x86_64":  # what records made before the engine wrote: the architecture, not the model
@@ -600,15 +642,14 @@ def write_pages(
 
 
 def _spec_path(spec: StudySpec, root: Path | None) -> str:
-    """The spec's path as a command run from ``root`` (the repository) names it; its file name without a root."""
+    """The spec's path as a command run from ``root`` (the repository) names it; its file name outside ``root``."""
     if spec.path is None:
         return "SPEC"
-    if root is None:
-        return Path(spec.path).name
     try:
-        return _relative(spec.path, root)
+        path = _relative(spec.path, root)
     except ValueError:  # another drive (Windows)
-        return str(spec.path)
+        path = ".."
+    return Path(spec.path).name if root is None or path.startswith("..") else path
 
 
 def _verdict_lines(confirmatory: Sequence[tuple[StudySpec, Report]]) -> list[str]:
