@@ -402,8 +402,37 @@ def test_study_commands_plan_run_and_report(tmp_path, capsys) -> None:
     assert main(["study", "report", str(path), "--run-dir", str(root)]) == 0
     out = capsys.readouterr().out
     assert "## s (exploratory)" in out and (root / "report.md").read_text() in out and "| H1 | c |" in out
+    _status_reads_states_and_steps_but_no_return(path, root, capsys)
     assert main(["study", "run", str(tmp_path / "missing.yaml")]) == 2
     assert "study spec" in capsys.readouterr().err
+
+
+def _status_reads_states_and_steps_but_no_return(path: Path, root: Path, capsys) -> None:
+    import shutil
+
+    from pimbrl.experiments.progress import study_progress
+    from pimbrl.training.rundir import RunDirectory
+
+    spec = load_spec(path)
+    returns = [RunDirectory(root / "mfrl" / f"seed{k}").result()["final_return"] for k in (0, 1)]
+    assert main(["study", "status", str(path), "--run-dir", str(root), "--jobs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "2 runs; 2 finished, 0 running, 0 interrupted, 0 not started" in out and "| mfrl | 2/2 | 0 | 0 | 0 |" in out
+    assert not any(f"{r:.2f}" in out or f"{r:.1f}" in out for r in returns)  # no outcome is shown
+    one = RunDirectory(root / "mfrl" / "seed1")
+    one.update_status(status="running")  # a process that died mid-run: interrupted
+    assert [p.state for p in study_progress(spec, root)] == ["finished", "interrupted"]
+    writer = RunDirectory(root / "mfrl" / "seed1")
+    writer.lock()  # another writer holds it: running
+    try:
+        progress = study_progress(spec, root)
+        assert progress[1].state == "running" and progress[1].steps == progress[1].total_steps
+    finally:
+        writer.close()
+    shutil.rmtree(root / "mfrl" / "seed0")
+    assert main(["study", "status", str(path), "--run-dir", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "0 finished, 0 running, 1 interrupted, 1 not started" in out and "which no finished run times yet" in out
 
 
 @pytest.mark.slow

@@ -508,6 +508,14 @@ def _cmd_study(args: argparse.Namespace) -> int:
             print(f"{r.path}  {r.system} {r.arm} {r.setting_text} seed {r.seed}")
         print(f"{len(runs)} runs of study {spec.name} ({spec.kind}); plan: {spec.plan or 'not stated in the spec'}")
         return 0
+    if args.action == "status":
+        from .experiments.progress import progress_lines, study_progress
+
+        if not root.is_dir():
+            print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
+            return 0
+        print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=args.jobs)))
+        return 0
     if args.action == "run":
         _check_run_dir(str(root))
         record = run_study(spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun, log=log)
@@ -749,13 +757,16 @@ def build_parser() -> argparse.ArgumentParser:
         "study",
         help="run a study spec (systems x methods x seeds x settings), resumable; report its tables and hypotheses",
         description="plan SPEC: list its runs. run SPEC: train what is missing (local processes or Ray) and write its "
-        "record. report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
+        "record. status SPEC: which runs have finished, run or wait, and the compute left (no returns). "
+        "report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
         "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. Format: pimbrl.experiments.spec.",
     )
-    st.add_argument("action", choices=("plan", "run", "report"))
+    st.add_argument("action", choices=("plan", "run", "status", "report"))
     st.add_argument("specs", nargs="+", metavar="SPEC", help="study spec (YAML)")
     st.add_argument("--run-dir", default=None, help="the study's directory (default: runs/<study name>)")
-    st.add_argument("--jobs", type=int, default=1, help="run: runs at a time (one process each, one thread each)")
+    st.add_argument(
+        "--jobs", type=int, default=1, help="run: runs at a time (one process each, one thread each); status: for the estimate"
+    )
     st.add_argument("--backend", choices=("local", "ray"), default="local", help="run: local processes or Ray tasks")
     st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
     st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")

@@ -1,0 +1,125 @@
+"""A study's progress without its outcomes.
+
+Which runs have finished, are running, were interrupted or have not started, how far each has come, and
+about how much compute is left. ``pimbrl study status SPEC`` prints it. It reads each run's state, its step
+count and its wall-clock, and never a return: a confirmatory study can be watched while it runs without
+anyone reading its results early.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..training.rundir import RunDirectory
+from .engine import StudyRun, plan_study
+from .spec import StudySpec
+
+__all__ = ["RunProgress", "progress_lines", "study_progress"]
+
+#: a run's states, in the order the table lists them
+STATES = ("finished", "running", "interrupted", "not started")
+
+
+@dataclass(frozen=True)
+class RunProgress:
+    """Where one run of a study stands.
+
+    Attributes:
+        run: the planned run.
+        state: ``finished``, ``running`` (another process holds its lock), ``interrupted`` (started, not
+            finished, nobody writing it: ``pimbrl study run`` resumes it) or ``not started``.
+        steps: its real steps at its last evaluation (0 before the first).
+        wall_s: its training wall-clock so far in seconds (a finished run's whole), ``None`` before the first
+            evaluation.
+    """
+
+    run: StudyRun
+    state: str
+    steps: int
+    wall_s: float | None
+
+    @property
+    def total_steps(self) -> int:
+        """The real steps the run is configured to take."""
+        return int(self.run.config.total_steps)
+
+
+def _progress(run: StudyRun) -> RunProgress:
+    rd = RunDirectory(run.path)
+    try:
+        payload = rd.read_config()
+    except FileNotFoundError:
+        return RunProgress(run, "not started", 0, None)
+    rows = rd.evaluations.read()
+    steps = int(float(rows[-1]["step"])) if rows else 0
+    wall = float(rows[-1]["wall_s"]) if rows else None
+    if rd.holder() is not None:
+        state = "running"
+    elif payload.get("status") == "finished":
+        state = "finished"
+        wall = float((payload.get("summary") or {}).get("wall_s", wall if wall is not None else math.nan))
+    else:
+        state = "interrupted"
+    return RunProgress(run, state, steps, wall)
+
+
+def study_progress(spec: StudySpec, root: str | Path) -> list[RunProgress]:
+    """Every planned run of ``spec`` under ``root`` with its state, steps and wall-clock (no returns)."""
+    return [_progress(run) for run in plan_study(spec, root)]
+
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:,.1f} min"
+
+
+def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int = 1) -> list[str]:
+    """A table per arm and an estimate of the compute left, as lines of text.
+
+    The table gives each arm's finished, running (with steps), interrupted and unstarted runs and the mean
+    wall-clock of its finished runs. The estimate charges each unfinished run its arm's mean finished
+    wall-clock, less the fraction of steps it has done; arms with no finished run are named, not guessed.
+    """
+    counts = {s: sum(p.state == s for p in progress) for s in STATES}
+    lines = [
+        f"study {spec.name} ({spec.kind}): {len(progress)} runs; " + ", ".join(f"{n} {s}" for s, n in counts.items()),
+        "",
+        "| arm | finished | running (steps) | interrupted | not started | wall per finished run |",
+        "|---|---|---|---|---|---|",
+    ]
+    groups: dict[str, list[RunProgress]] = {}
+    for p in progress:
+        groups.setdefault(p.run.label(spec.compact), []).append(p)
+    left_s, unknown = 0.0, []
+    for label, ps in groups.items():
+        done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
+        mean = sum(done) / len(done) if done else None
+        running = [f"{p.steps:,}/{p.total_steps:,}" for p in ps if p.state == "running"]
+        cells = [
+            label,
+            f"{sum(p.state == 'finished' for p in ps)}/{len(ps)}",
+            f"{len(running)} ({', '.join(running)})" if running else "0",
+            str(sum(p.state == "interrupted" for p in ps)),
+            str(sum(p.state == "not started" for p in ps)),
+            _minutes(mean) if mean is not None else "—",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+        todo = [p for p in ps if p.state != "finished"]
+        if todo and mean is None:
+            unknown.append(label)
+        elif mean is not None:
+            left_s += sum(mean * max(0.0, 1.0 - p.steps / max(p.total_steps, 1)) for p in todo)
+    lines.append("")
+    estimate = f"about {left_s / 60:,.0f} CPU-minutes left, {left_s / 60 / max(jobs, 1):,.0f} minutes at --jobs {jobs}"
+    if unknown:
+        estimate += (
+            f", plus {', '.join(unknown)}, which no finished run times yet"
+            f" (the spec's plan: {spec.plan.strip() if spec.plan else 'not stated'})"
+        )
+    lines += [
+        f"Estimate: {estimate}.",
+        "No return is shown: a study's outcomes are read from its record once it has finished (`pimbrl study report`).",
+    ]
+    return lines
