@@ -660,3 +660,40 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
         entry = entries[arm.name]
         assert (entry["method"], entry.get("match_updates", False)) == (arm.method, arm.match_updates), arm.name
         assert {k: tuple(v) if isinstance(v, list) else v for k, v in entry["overrides"].items()} == arm.overrides, arm.name
+
+
+def test_steps_hypotheses_also_count_the_imagined_transitions_made_by_the_threshold(tmp_path) -> None:
+    hypotheses = {"H3": {"claim": "c", "better": "known-scheme", "than": "mfrl", "metric": "steps_to_threshold",
+                         "threshold": -800}}  # fmt: skip
+    spec = load_spec(_spec(tmp_path, methods=["mfrl", "known-scheme"], seeds=5, hypotheses=hypotheses,
+                           statistics={"reps": 200}))  # fmt: skip
+    runs = []
+    for seed in range(5):
+        curve = {"step": [40, 80], "return_min": [0, 0], "return_max": [0, 0]}
+        reached = seed < 4  # seed 4 of known-scheme never reaches -800: censored at 80 + its 300 imagined
+        runs.append({"system": "pimbrl/Pendulum-v0", "arm": "known-scheme", "setting": "default", "seed": seed,
+                     "finished": True, "steps": 80, "final_return": -700.0, "imagined_transitions": 300,
+                     "curve": {**curve, "return_mean": [-700.0 if reached else -900.0] * 2, "imagined_total": [100.0, 300.0]}})  # fmt: skip
+        runs.append({"system": "pimbrl/Pendulum-v0", "arm": "mfrl", "setting": "default", "seed": seed, "finished": True,
+                     "steps": 80, "final_return": -750.0, "curve": {**curve, "return_mean": [-900.0, -750.0]}})  # fmt: skip
+    report = study_report(spec, {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256})
+    counted = report.stats["hypotheses"]["H3 pimbrl/Pendulum-v0 default"]["with_imagined"]
+    assert counted["known-scheme"]["real"]["median"] == 40 and counted["known-scheme"]["with_imagined"]["median"] == 140
+    assert counted["mfrl"]["real"]["median"] == 80 and counted["mfrl"]["with_imagined"]["median"] == 80
+    assert "| H3 | Pendulum-v0 | -800 | known-scheme | 4/5 | 40 | 140 |" in report.markdown
+    for run in runs:  # a record made before the curve carried imagined transitions: no such table, no guess
+        run["curve"].pop("imagined_total", None)
+    report = study_report(spec, {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256})
+    assert "with_imagined" not in report.stats["hypotheses"]["H3 pimbrl/Pendulum-v0 default"]
+    assert "real + imagined" not in report.markdown
+
+
+def test_a_run_s_curve_carries_the_imagined_transitions_made_by_each_evaluation(tmp_path) -> None:
+    from pimbrl.training.rundir import RunDirectory
+
+    run = RunDirectory(tmp_path)
+    assert run._imagined_at([40, 80]) == {}  # no metrics: a run without them
+    (tmp_path / "metrics.csv").write_text("step,wall_s,imagined_total\n40,1.0,\n60,2.0,100\n80,3.0,250\n120,4.0,400\n")
+    assert run._imagined_at([40, 80, 100]) == {"imagined_total": [0.0, 250.0, 250.0]}  # the last logged at or before
+    (tmp_path / "metrics.csv").write_text("step,wall_s\n40,1.0\n")
+    assert run._imagined_at([40]) == {}  # a model-free run logs none

@@ -78,6 +78,37 @@ def steps_to(run: dict[str, Any], threshold: float) -> int | None:
     return None
 
 
+def _transitions_to(runs: list[dict[str, Any]], threshold: float) -> dict[str, Any] | None:
+    """Real steps, and real steps plus imagined transitions, by the first evaluation reaching ``threshold``.
+
+    Censored medians over ``runs`` (a run that never reached it needed more than its whole budget: its real
+    steps plus all its imagined transitions). ``None`` where a run with imagined transitions has no record of
+    when they were made (records made before they were logged with the curve).
+    """
+    real, combined, budgets, combined_budgets, imagined_any = [], [], [], [], False
+    for run in runs:
+        curve = run.get("curve") or {}
+        made = curve.get("imagined_total")
+        if made is None and (run.get("imagined_transitions") or 0) > 0:
+            return None
+        made = made or [0.0] * len(curve.get("step", []))
+        imagined_any = imagined_any or any(m > 0 for m in made)
+        at = steps_to(run, threshold)
+        budget = int(run.get("steps") or 0)
+        real.append(at)
+        budgets.append(budget)
+        index = next((i for i, s in enumerate(curve.get("step", [])) if int(s) == at), None) if at is not None else None
+        combined.append(None if at is None or index is None else int(at + made[index]))
+        combined_budgets.append(int(budget + (made[-1] if made else 0)))
+    return {
+        "runs": len(runs),
+        "reached": sum(s is not None for s in real),
+        "imagined": imagined_any,
+        "real": stats.censored_median(real, budgets),
+        "with_imagined": stats.censored_median(combined, combined_budgets),
+    }
+
+
 def _outcome(spec: StudySpec, run: dict[str, Any]) -> float:
     if spec.outcome == "holdout":  # a finished run of a holdout study has played it: a missing one is an error
         if run.get("holdout_return") is None:
@@ -266,6 +297,7 @@ def study_report(
     if spec.hypotheses:
         lines += ["### Hypotheses", "", "| id | claim | where | measure | probability of improvement | verdict |", _separator(6)]
         incomplete = bool(record.get("missing")) or bool(unfinished) or bool(record.get("mismatched"))
+        both: list[tuple[str, str, float, dict[str, Any]]] = []  # steps hypotheses, counted with imagined transitions
         for h in spec.hypotheses:
             for (system, setting), arms in _groups(record).items():
                 if h.system is not None and system_id(h.system) != system:
@@ -274,6 +306,7 @@ def study_report(
                     continue
                 where = _short(system) + ("" if setting == "default" else f" {setting}")
                 g = computed["groups"][f"{system} {setting}"]["arms"]
+                with_imagined: dict[str, Any] | None = None
                 if h.metric == "final_return":
                     xs, ys = list(g[h.better]["outcome"].values()), list(g[h.than]["outcome"].values())
                     poi = stats.probability_of_improvement(xs, ys, spec.confidence, spec.reps, seed)
@@ -287,11 +320,16 @@ def study_report(
                         sa, sb = (_arm_stats(spec, arms[arm], [t], seed)["thresholds"][key] for arm in (h.better, h.than))
                     poi = _steps_poi(spec, sa, sb, seed)
                     measure = f"real steps to {t:g}"
+                    counted = {arm: n for arm in (h.better, h.than) if (n := _transitions_to(arms[arm], t)) is not None}
+                    if len(counted) == 2 and any(n["imagined"] for n in counted.values()):
+                        with_imagined = counted
+                        both.append((h.id, where, t, counted))
                 v = stats.verdict(poi, (g[h.better]["runs"], g[h.than]["runs"]))
                 if incomplete and not v.startswith("inconclusive"):
                     v = "inconclusive (runs missing or unfinished)"
                 computed["hypotheses"][f"{h.id} {system} {setting}"] = {
                     "id": h.id, "system": system, "setting": setting, "measure": measure, "poi": poi.as_dict(), "verdict": v,
+                    **({"with_imagined": with_imagined} if with_imagined is not None else {}),
                 }  # fmt: skip
                 cells = [
                     h.id,
@@ -303,6 +341,21 @@ def study_report(
                 ]
                 lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
         lines.append("")
+        if both:
+            lines += [
+                "Counting the imagined transitions with the real ones (a scheme model's imagined transitions are steps of "
+                "the equation's scheme; a network's, of the network): the censored median, over runs, of real steps "
+                "plus imagined transitions made by the first evaluation that reached the threshold.",
+                "",
+                "| id | where | threshold | arm | reached | median real steps | median real + imagined transitions |",
+                _separator(7),
+            ]
+            for hid, where, t, counted in both:
+                for arm, n in counted.items():
+                    cells = [hid, where, f"{t:g}", arm, f"{n['reached']}/{n['runs']}", stats.median_text(n["real"]),
+                             stats.median_text(n["with_imagined"])]  # fmt: skip
+                    lines.append("| " + " | ".join(_cell(x) for x in cells) + " |")
+            lines.append("")
     if record.get("missing"):
         lines += [f"Runs not made yet: {len(record['missing'])} (the tables hold the runs made).", ""]
     if record.get("mismatched"):

@@ -756,8 +756,33 @@ class RunDirectory:
             "wall_s": float(summary.get("wall_s", rows[-1]["wall_s"])),
             "updates": updates,
             "update_to_data": updates / max(steps, 1),
-            "curve": {k: [float(r[k]) for r in rows] for k in ("step", "return_mean", "return_min", "return_max", "wall_s")},
+            "curve": {
+                **{k: [float(r[k]) for r in rows] for k in ("step", "return_mean", "return_min", "return_max", "wall_s")},
+                **self._imagined_at([int(float(r["step"])) for r in rows]),
+            },
         }
+
+    def _imagined_at(self, steps: list[int]) -> dict[str, list[float]]:
+        """``{"imagined_total": [...]}``: the imagined transitions made by each of ``steps`` (a run with a model).
+
+        Read from ``metrics.csv`` (the last row logged at or before each step); ``{}`` for a run that logs no
+        imagined transitions (model-free runs, controllers) or has no metrics.
+        """
+        log = CsvLog(self.path, "metrics.csv", [], numeric=("step", "imagined_total"), required=("step",))
+        try:
+            rows = [r for r in log.read() if r.get("imagined_total") not in (None, "")]
+        except FileNotFoundError:
+            return {}
+        if not rows:
+            return {}
+        logged = [(int(float(r["step"])), float(r["imagined_total"])) for r in rows]
+        out, i, last = [], 0, 0.0
+        for step in steps:
+            while i < len(logged) and logged[i][0] <= step:
+                last = logged[i][1]
+                i += 1
+            out.append(last)
+        return {"imagined_total": out}
 
     def update_status(self, **fields: Any) -> None:
         """Set top-level ``fields`` of ``config.json`` (e.g. ``status``), keeping the rest."""
