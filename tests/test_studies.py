@@ -697,3 +697,15 @@ def test_a_run_s_curve_carries_the_imagined_transitions_made_by_each_evaluation(
     assert run._imagined_at([40, 80, 100]) == {"imagined_total": [0.0, 250.0, 250.0]}  # the last logged at or before
     (tmp_path / "metrics.csv").write_text("step,wall_s\n40,1.0\n")
     assert run._imagined_at([40]) == {}  # a model-free run logs none
+
+
+def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    a, b = _spec(tmp_path, name="a.yaml"), _spec(tmp_path, name="b.yaml")
+    assert main(["study", "status", str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert "study a: no run directory runs/a yet" in out and "study b: no run directory runs/b yet" in out
+    assert main(["study", "status", str(a), str(b), "--run-dir", "x"]) == 2
+    assert "reads each one's own directory: drop --run-dir" in capsys.readouterr().err
+    assert main(["study", "plan", str(a), str(b)]) == 2
+    assert "several only with status or report --pages" in capsys.readouterr().err

@@ -485,6 +485,15 @@ def _study_run_dir(spec_path: str, spec_name: str, given: str | None) -> Path:
     return Path("runs") / spec_name
 
 
+def _study_status(spec: Any, root: Path, jobs: int) -> None:
+    from .experiments.progress import progress_lines, study_progress
+
+    if not root.is_dir():
+        print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
+        return
+    print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
+
+
 def _cmd_study(args: argparse.Namespace) -> int:
     from .experiments.engine import plan_study, run_study
     from .experiments.report import load_record, study_report, write_pages
@@ -498,8 +507,18 @@ def _cmd_study(args: argparse.Namespace) -> int:
         for path in write_pages(specs, args.pages, preamble=preamble):
             print(f"wrote {path}")
         return 0
+    if args.action == "status" and len(args.specs) > 1:
+        if args.run_dir is not None:
+            raise ValueError("`pimbrl study status` with several specs reads each one's own directory: drop --run-dir")
+        for i, path in enumerate(args.specs):
+            if i:
+                print()
+            _study_status(load_spec(path), _study_run_dir(path, load_spec(path).name, None), args.jobs)
+        return 0
     if len(args.specs) != 1:
-        raise ValueError(f"`pimbrl study {args.action}` takes one spec (several only with report --pages), got {len(args.specs)}")
+        raise ValueError(
+            f"`pimbrl study {args.action}` takes one spec (several only with status or report --pages), got {len(args.specs)}"
+        )
     spec = load_spec(args.specs[0])
     root = _study_run_dir(args.specs[0], spec.name, args.run_dir)
     if args.action == "plan":
@@ -509,12 +528,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         print(f"{len(runs)} runs of study {spec.name} ({spec.kind}); plan: {spec.plan or 'not stated in the spec'}")
         return 0
     if args.action == "status":
-        from .experiments.progress import progress_lines, study_progress
-
-        if not root.is_dir():
-            print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
-            return 0
-        print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=args.jobs)))
+        _study_status(spec, root, args.jobs)
         return 0
     if args.action == "run":
         _check_run_dir(str(root))
