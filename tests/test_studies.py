@@ -709,3 +709,36 @@ def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys
     assert "reads each one's own directory: drop --run-dir" in capsys.readouterr().err
     assert main(["study", "plan", str(a), str(b)]) == 2
     assert "several only with status or report --pages" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_rest(tmp_path, monkeypatch) -> None:
+    from pimbrl.experiments import replicas
+
+    overrides = {"eval_episodes": 3, "holdout_episodes": 2, "model.gains": [1.0]}
+    methods = {"feedback": {"method": "feedback"}, "mpc-identified": {"method": "mpc", "seeds": [0, 1, 2],
+               "overrides": {"learn.coefficients": {"g": None}}}}  # fmt: skip
+    spec = load_spec(_spec(tmp_path, methods={"feedback": methods["feedback"]}, seeds=4, overrides=overrides))
+    root = tmp_path / "run"
+    logs: list[str] = []
+    record = run_study(spec, root, jobs=2, status=False, log=logs.append)
+    copied = [line for line in logs if line.startswith("copy ")]
+    assert len(copied) == 2 and "seeds 0 and 1 agree" in copied[0]  # seeds 2 and 3: copies of seed 0
+    by_seed = {r["seed"]: r for r in record["runs"]}
+    assert [by_seed[s]["replicate_of"] for s in range(4)] == [None, None, "feedback/seed0", "feedback/seed0"]
+    assert len({by_seed[s]["holdout_return"] for s in range(4)}) == 1 and all(r["finished"] for r in record["runs"])
+    payload = json.loads((root / "feedback" / "seed3" / "config.json").read_text())
+    assert payload["config"]["seed"] == 3 and payload["replicate_of"]["checked_against"] == "feedback/seed1"
+    assert not (root / "feedback" / "seed3" / "run.lock").exists() and not list((root / "feedback").glob(".*"))
+    assert not record["mismatched"] and not record["missing"]
+    again: list[str] = []
+    run_study(spec, root, jobs=2, status=False, log=again.append)  # nothing to do the second time
+    assert "4 finished, 0 to run" in again[0] and not any(line.startswith("copy ") for line in again)
+    # probes that disagree (e.g. an environment with noise of its own): nothing is copied, every seed runs
+    monkeypatch.setattr(replicas, "same_episodes", lambda a, b: False)
+    other = tmp_path / "other"
+    logs.clear()
+    record = run_study(spec, other, jobs=2, status=False, log=logs.append)
+    assert not any(line.startswith("copy ") for line in logs) and all(r["replicate_of"] is None for r in record["runs"])
+    plan = plan_study(load_spec(_spec(tmp_path, name="m.yaml", methods=methods, seeds=3, overrides=overrides)), tmp_path / "m")
+    assert [replicas.seed_free(r) for r in plan if r.seed == 0] == [True, False]  # an identifying MPC draws transitions

@@ -532,7 +532,10 @@ def _cmd_study(args: argparse.Namespace) -> int:
         return 0
     if args.action == "run":
         _check_run_dir(str(root))
-        record = run_study(spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun, log=log)
+        record = run_study(
+            spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun,
+            replicas=not args.no_replicas, log=log,
+        )  # fmt: skip
         print(f"study {spec.name}: {len(record['runs'])} runs recorded in {root / 'record.json'}")
         if record["failed"]:
             print(f"failed runs: {', '.join(record['failed'])}", file=sys.stderr)
@@ -784,6 +787,12 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--backend", choices=("local", "ray"), default="local", help="run: local processes or Ray tasks")
     st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
     st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")
+    st.add_argument(
+        "--no-replicas",
+        action="store_true",
+        help="run: train every seed of a seed-free controller (feedback, MPC without identification) instead of "
+        "copying its first seed where its first two agree on every episode",
+    )
     st.add_argument("--out", default=None, help="report: directory of report.md and figures (default: the run directory)")
     st.add_argument("--pages", default=None, metavar="DOCS", help="report: write DOCS/results.md and DOCS/reproduce.md")
     _add_import(st)

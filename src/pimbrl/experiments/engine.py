@@ -211,6 +211,7 @@ def run_study(
     rerun: bool = False,
     status: bool = True,
     run: bool = True,
+    replicas: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Train what is missing of ``spec`` in ``root`` and return (and write) its record.
@@ -218,9 +219,12 @@ def run_study(
     ``backend``: ``"local"`` (each run a child process, ``jobs`` at a time) or ``"ray"`` (each run a Ray task
     on a local instance started here, or on the cluster at ``address``; the helper processes of a local
     instance end with this process, also a killed one). ``run=False`` trains nothing and collects the runs as
-    they stand. A confirmatory spec must be committed before its first run (:mod:`.registration`).
+    they stand. ``replicas``: a seed-free controller's arm runs two seeds and copies the first into the others
+    where the two agree on every episode (:mod:`.replicas`). A confirmatory spec must be committed before its
+    first run (:mod:`.registration`).
     """
     from .registration import start_study
+    from .replicas import plan_replicas, replicate, same_episodes
 
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be local or ray, got {backend!r}")
@@ -249,12 +253,27 @@ def run_study(
             f"study {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} finished, {len(todo)} to run"
             + (" on Ray" if todo and backend == "ray" else "")
         )
-        if backend == "ray" and todo:
-            failed = [str(Path(p).relative_to(root)) for p in _run_on_ray(todo, spec.imports, address, jobs, log)]
-        elif todo:
-            by_path = {str(r.path): r for r in todo}
+
+        def train(batch: list[StudyRun]) -> list[str]:
+            if backend == "ray" and batch:
+                return [str(Path(p).relative_to(root)) for p in _run_on_ray(batch, spec.imports, address, jobs, log)]
+            if not batch:
+                return []
+            by_path = {str(r.path) for r in batch}
             bad = run_all([s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports)
-            failed = [str(s.path.relative_to(root)) for s in bad]
+            return [str(s.path.relative_to(root)) for s in bad]
+
+        copies = plan_replicas(runs, todo) if replicas else {}  # seed-free controllers: two probes, the rest copied
+        failed = train([r for r in todo if r.path not in copies])
+        rest = []
+        for copy in (r for r in todo if r.path in copies):
+            first, second = copies[copy.path]
+            if same_episodes(first, second):
+                replicate(first, copy, second, root)
+                log(f"copy {copy.label(spec.compact)} seed {copy.seed}: seed-free, seeds {first.seed} and {second.seed} agree")
+            else:
+                rest.append(copy)
+        failed += train(rest)
         return _write_record(spec, runs, root, failed, run=True)  # under the lock: no other driver moves a run meanwhile
     finally:
         os.close(lock)
@@ -360,6 +379,7 @@ def _run_entry(run: StudyRun, root: Path, payload: dict[str, Any]) -> dict[str, 
         "validation_transitions": summary.get("validation_transitions"),
         "inference_s_per_step": summary.get("inference_s_per_step"),
         "provenance": payload.get("provenance"),
+        "replicate_of": (payload.get("replicate_of") or {}).get("source"),
         "curve": curve,
     }
 

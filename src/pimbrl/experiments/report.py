@@ -464,7 +464,9 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
     commit = ", ".join(c for c in commits if c != "None") or (
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
-    lines.append(f"- **Runs**: {len(record['runs'])}; CPU: {cpu}; commit: {commit}.")
+    copies = sum(1 for r in record["runs"] if r.get("replicate_of"))
+    copied = f" ({copies} copied from a seed-free controller's first seed, checked against its second)" if copies else ""
+    lines.append(f"- **Runs**: {len(record['runs'])}{copied}; CPU: {cpu}; commit: {commit}.")
     protocols = {p for arm in spec.arms for p in setting_values(arm, spec.overrides, spec.grid, "eval_protocol", "test")}
     if protocols != {"test"}:
         on = "every arm" if protocols == {"validation"} else "some arms"
