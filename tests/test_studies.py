@@ -433,6 +433,10 @@ def _status_reads_states_and_steps_but_no_return(path: Path, root: Path, capsys)
     assert main(["study", "status", str(path), "--run-dir", str(root)]) == 0
     out = capsys.readouterr().out
     assert "0 finished, 0 running, 1 interrupted, 1 not started" in out and "which no finished run times yet" in out
+    (root / "mfrl" / "seed1" / "config.json").write_text("{not json")  # one damaged run: named, the rest listed
+    assert main(["study", "status", str(path), "--run-dir", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "0 interrupted, 1 not started, 1 unreadable" in out and f"Unreadable: {root / 'mfrl' / 'seed1'}: " in out
 
 
 @pytest.mark.slow
@@ -644,7 +648,7 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
     """tune-burgers's record, reported: its choices are confirmatory-burgers's arms, entry for entry."""
     import dataclasses
 
-    import yaml
+    from pimbrl.config import load_yaml
 
     repo = Path(__file__).resolve().parents[1]
     spec = dataclasses.replace(load_spec(repo / "benchmarks" / "pending" / "tune-burgers.yaml"), reps=200)
@@ -653,7 +657,7 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
     assert rules == {"tuned model-free arm": "mfrl-matched", "best RL arm": "mfrl-matched"}
     assert "the tuned model-free arm is mfrl-matched (-9.767) and the best RL arm is mfrl-matched (-9.767)" in report.markdown
     block = report.markdown.split("```yaml\n")[1].split("```")[0]
-    entries = yaml.safe_load(block)
+    entries = load_yaml(block)  # the project's reader (YAML 1.2 numbers: 1.0e-5 is a number)
     assert set(entries) == set(spec.tuning) and entries["dpc"] == {"method": "dpc", "overrides": {"model.horizon": 40}}
     confirmatory = load_spec(repo / "benchmarks" / "confirmatory" / "confirmatory-burgers.yaml")
     for arm in confirmatory.arms:  # the registered arms are the report's entries
@@ -681,11 +685,14 @@ def test_steps_hypotheses_also_count_the_imagined_transitions_made_by_the_thresh
     assert counted["known-scheme"]["real"]["median"] == 40 and counted["known-scheme"]["with_imagined"]["median"] == 140
     assert counted["mfrl"]["real"]["median"] == 80 and counted["mfrl"]["with_imagined"]["median"] == 80
     assert "| H3 | Pendulum-v0 | -800 | known-scheme | 4/5 | 40 | 140 |" in report.markdown
+    runs[0]["curve"]["imagined_total"] = [None, 300.0]  # not logged at the evaluation that reached -800
+    report = study_report(spec, {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256})
+    assert "Not counted with the imagined transitions: H3 (Pendulum-v0)" in report.markdown
     for run in runs:  # a record made before the curve carried imagined transitions: no such table, no guess
         run["curve"].pop("imagined_total", None)
     report = study_report(spec, {"runs": runs, "thresholds": {}, "spec_sha256": spec.sha256})
     assert "with_imagined" not in report.stats["hypotheses"]["H3 pimbrl/Pendulum-v0 default"]
-    assert "real + imagined" not in report.markdown
+    assert "real + imagined" not in report.markdown and "Not counted with the imagined transitions: H3" in report.markdown
 
 
 def test_a_run_s_curve_carries_the_imagined_transitions_made_by_each_evaluation(tmp_path) -> None:
@@ -694,9 +701,11 @@ def test_a_run_s_curve_carries_the_imagined_transitions_made_by_each_evaluation(
     run = RunDirectory(tmp_path)
     assert run._imagined_at([40, 80]) == {}  # no metrics: a run without them
     (tmp_path / "metrics.csv").write_text("step,wall_s,imagined_total\n40,1.0,\n60,2.0,100\n80,3.0,250\n120,4.0,400\n")
-    assert run._imagined_at([40, 80, 100]) == {"imagined_total": [0.0, 250.0, 250.0]}  # the last logged at or before
+    assert run._imagined_at([40, 80, 100]) == {"imagined_total": [None, 250.0, None]}  # only a row at that very step
     (tmp_path / "metrics.csv").write_text("step,wall_s\n40,1.0\n")
     assert run._imagined_at([40]) == {}  # a model-free run logs none
+    (tmp_path / "metrics.csv").write_text("step,wall_s,imagined_total\n40,1.0,nan\n")
+    assert run._imagined_at([40]) == {}  # a damaged log: no count, and no error (the outcome does not need it)
 
 
 def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys, monkeypatch) -> None:
@@ -713,6 +722,8 @@ def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys
 
 @pytest.mark.slow
 def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_rest(tmp_path, monkeypatch) -> None:
+    import dataclasses
+
     from pimbrl.experiments import replicas
 
     overrides = {"eval_episodes": 3, "holdout_episodes": 2, "model.gains": [1.0]}
@@ -734,7 +745,15 @@ def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_res
     again: list[str] = []
     run_study(spec, root, jobs=2, status=False, log=again.append)  # nothing to do the second time
     assert "4 finished, 0 to run" in again[0] and not any(line.startswith("copy ") for line in again)
-    # probes that disagree (e.g. an environment with noise of its own): nothing is copied, every seed runs
+    # a planted link in the source: refused (nothing followed), no half-made copy left
+    runs = {r.seed: r for r in plan_study(spec, root)}
+    stranger = dataclasses.replace(runs[3], seed=7, path=root / "feedback" / "seed7")
+    (root / "feedback" / "seed0" / "control.json").unlink()
+    (root / "feedback" / "seed0" / "control.json").symlink_to(tmp_path / "s.yaml")
+    with pytest.raises(ValueError, match="link"):
+        replicas.replicate(runs[0], stranger, runs[1], root)
+    assert not stranger.path.exists() and not list((root / "feedback").glob(".*"))
+    # probes that disagree: nothing is copied, every seed runs
     monkeypatch.setattr(replicas, "same_episodes", lambda a, b: False)
     other = tmp_path / "other"
     logs.clear()
@@ -742,3 +761,29 @@ def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_res
     assert not any(line.startswith("copy ") for line in logs) and all(r["replicate_of"] is None for r in record["runs"])
     plan = plan_study(load_spec(_spec(tmp_path, name="m.yaml", methods=methods, seeds=3, overrides=overrides)), tmp_path / "m")
     assert [replicas.seed_free(r) for r in plan if r.seed == 0] == [True, False]  # an identifying MPC draws transitions
+    grid = load_spec(_spec(tmp_path, name="g.yaml", methods={"feedback": methods["feedback"]}, seeds=3,
+                           overrides={"eval_episodes": 3}, grid={"model.gains": [[1.0], [3.0]]}))  # fmt: skip
+    runs = plan_study(grid, tmp_path / "g")
+    assert len(replicas.plan_replicas(runs, runs)) == 2  # list-valued grid settings group too: one copy per setting
+    # a copy that cannot be made (here: any error) is trained instead, and the record is still written
+    monkeypatch.setattr(replicas, "same_episodes", lambda a, b: True)
+    monkeypatch.setattr(replicas, "replicate", lambda *a: (_ for _ in ()).throw(OSError("disk full")))
+    logs.clear()
+    record = run_study(spec, tmp_path / "third", jobs=2, status=False, log=logs.append)
+    assert sum("no copy for feedback seed" in line and "disk full" in line for line in logs) == 2
+    assert len(record["runs"]) == 4 and all(r["finished"] and r["replicate_of"] is None for r in record["runs"])
+
+
+@pytest.mark.slow
+def test_a_model_based_run_logs_its_metrics_at_every_evaluation_so_its_curve_counts_imagined_transitions(tmp_path) -> None:
+    from pimbrl.training import run_training
+    from pimbrl.training.rundir import RunDirectory
+
+    cfg = resolve_config("pimbrl/Pendulum-v0", {"method": "mbrl", **TINY, "total_steps": 120, "log_every": 50,
+                                                "imagine.rollout_length": 2})  # fmt: skip
+    run_training(cfg, tmp_path / "run", progress=False)
+    steps = [int(line.split(",")[0]) for line in (tmp_path / "run" / "metrics.csv").read_text().splitlines()[1:]]
+    assert steps == [40, 50, 80, 100, 120]  # every log_every, every evaluation, once each
+    curve = RunDirectory(tmp_path / "run").result()["curve"]
+    assert curve["step"] == [40.0, 80.0, 120.0] and None not in curve["imagined_total"]
+    assert curve["imagined_total"][-1] > 0

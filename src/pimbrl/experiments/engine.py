@@ -268,11 +268,16 @@ def run_study(
         rest = []
         for copy in (r for r in todo if r.path in copies):
             first, second = copies[copy.path]
-            if same_episodes(first, second):
-                replicate(first, copy, second, root)
-                log(f"copy {copy.label(spec.compact)} seed {copy.seed}: seed-free, seeds {first.seed} and {second.seed} agree")
-            else:
+            if not same_episodes(first, second):
                 rest.append(copy)
+                continue
+            try:
+                replicate(first, copy, second, root)
+            except (OSError, ValueError) as exc:  # that seed trains instead (shutil.Error is an OSError)
+                log(f"no copy for {copy.label(spec.compact)} seed {copy.seed} ({exc}); training it")
+                rest.append(copy)
+                continue
+            log(f"copy {copy.label(spec.compact)} seed {copy.seed}: seed-free, seeds {first.seed} and {second.seed} agree")
         failed += train(rest)
         return _write_record(spec, runs, root, failed, run=True)  # under the lock: no other driver moves a run meanwhile
     finally:
@@ -379,9 +384,19 @@ def _run_entry(run: StudyRun, root: Path, payload: dict[str, Any]) -> dict[str, 
         "validation_transitions": summary.get("validation_transitions"),
         "inference_s_per_step": summary.get("inference_s_per_step"),
         "provenance": payload.get("provenance"),
-        "replicate_of": (payload.get("replicate_of") or {}).get("source"),
+        "replicate_of": _replica_source(payload),
         "curve": curve,
     }
+
+
+def _replica_source(payload: dict[str, Any]) -> str | None:
+    """The run a copied seed-free run was copied from (``replicate_of`` in its config.json), else ``None``."""
+    replica = payload.get("replicate_of")
+    if replica is None:
+        return None
+    if not isinstance(replica, dict) or not isinstance(replica.get("source"), str):
+        raise ValueError(f"config.json: replicate_of must be an object naming its source, got {str(replica)[:80]!r}")
+    return str(replica["source"])
 
 
 def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from .spec import StudySpec
 __all__ = ["RunProgress", "progress_lines", "study_progress"]
 
 #: a run's states, in the order the table lists them
-STATES = ("finished", "running", "interrupted", "not started")
+STATES = ("finished", "running", "interrupted", "not started", "unreadable")
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,8 @@ class RunProgress:
     Attributes:
         run: the planned run.
         state: ``finished``, ``running`` (another process holds its lock), ``interrupted`` (started, not
-            finished, nobody writing it: ``pimbrl study run`` resumes it) or ``not started``.
+            finished, nobody writing it: ``pimbrl study run`` resumes it), ``not started`` or ``unreadable``
+            (a damaged file: ``why`` says which).
         steps: its real steps at its last evaluation (0 before the first).
         wall_s: its training wall-clock so far in seconds (a finished run's whole), ``None`` before the first
             evaluation.
@@ -40,6 +41,7 @@ class RunProgress:
     state: str
     steps: int
     wall_s: float | None
+    why: str = ""
 
     @property
     def total_steps(self) -> int:
@@ -48,6 +50,13 @@ class RunProgress:
 
 
 def _progress(run: StudyRun) -> RunProgress:
+    try:
+        return _read_progress(run)
+    except (OSError, ValueError) as exc:  # one damaged run is named; the others are still listed
+        return RunProgress(run, "unreadable", 0, None, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+
+
+def _read_progress(run: StudyRun) -> RunProgress:
     rd = RunDirectory(run.path)
     try:
         payload = rd.read_config()
@@ -83,8 +92,10 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
     wall-clock, less the fraction of steps it has done; arms with no finished run are named, not guessed.
     """
     counts = {s: sum(p.state == s for p in progress) for s in STATES}
+    hide = spec.kind == "confirmatory"  # an arm's wall-clock can follow its episodes' lengths (Cart-Pole: its return)
     lines = [
-        f"study {spec.name} ({spec.kind}): {len(progress)} runs; " + ", ".join(f"{n} {s}" for s, n in counts.items()),
+        f"study {spec.name} ({spec.kind}): {len(progress)} runs; "
+        + ", ".join(f"{n} {s}" for s, n in counts.items() if n or s != "unreadable"),
         "",
         "| arm | finished | running (steps) | interrupted | not started | wall per finished run |",
         "|---|---|---|---|---|---|",
@@ -96,14 +107,15 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
     for label, ps in groups.items():
         done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
         mean = sum(done) / len(done) if done else None
-        running = [f"{p.steps:,}/{p.total_steps:,}" for p in ps if p.state == "running"]
+        running = [f"{p.steps:,}/{p.total_steps:,}" if not p.run.config.control else "a controller" for p in ps
+                   if p.state == "running"]  # fmt: skip
         cells = [
             label,
             f"{sum(p.state == 'finished' for p in ps)}/{len(ps)}",
             f"{len(running)} ({', '.join(running)})" if running else "0",
             str(sum(p.state == "interrupted" for p in ps)),
             str(sum(p.state == "not started" for p in ps)),
-            _minutes(mean) if mean is not None else "—",
+            "hidden (confirmatory)" if hide and mean is not None else _minutes(mean) if mean is not None else "—",
         ]
         lines.append("| " + " | ".join(cells) + " |")
         todo = [p for p in ps if p.state != "finished"]
@@ -118,6 +130,8 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
             f", plus {', '.join(unknown)}, which no finished run times yet"
             f" (the spec's plan: {spec.plan.strip() if spec.plan else 'not stated'})"
         )
+    bad = [p for p in progress if p.state == "unreadable"]
+    lines += [f"Unreadable: {p.run.path}: {p.why}" for p in bad] + ([""] if bad else [])
     lines += [
         f"Estimate: {estimate}.",
         "No return is shown: a study's outcomes are read from its record once it has finished (`pimbrl study report`).",

@@ -9,8 +9,8 @@ times an hour for nothing new.
 So the engine runs the first two seeds of such an arm. Where the two agree on every episode of every pool
 (returns, lengths, scheme transitions), each further seed's directory is a copy of the first's. The copy
 holds its own seed in ``config.json`` and names its source under ``replicate_of``; the record keeps that
-name with the run. Where the two probes differ, nothing is copied: the other seeds run as usual. The test
-is a measurement, not an assumption: an environment with noise of its own fails it.
+name with the run. Where the two probes differ, or a copy cannot be made, the other seeds run as usual. The
+test checks what the argument above says should hold; a controller that did use its seed would fail it.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..fileio import atomic_write_bytes, read_below
+from ..fileio import MAX_JSON_BYTES, atomic_write_bytes, read_below, strict_json
 from ..training.rundir import RunDirectory
 
 if TYPE_CHECKING:
@@ -50,10 +50,10 @@ def plan_replicas(runs: Sequence[StudyRun], todo: Sequence[StudyRun]) -> dict[Pa
     Only seed-free arms with three or more seeds, and only runs not started yet (no directory): a started
     run resumes as itself.
     """
-    groups: dict[tuple[str, str, Any], list[StudyRun]] = {}
+    groups: dict[tuple[str, str, str], list[StudyRun]] = {}
     for run in runs:
         if seed_free(run):
-            groups.setdefault((run.system, run.arm, run.setting), []).append(run)
+            groups.setdefault((run.system, run.arm, run.setting_text), []).append(run)
     waiting = {r.path for r in todo if not r.path.exists()}
     out: dict[Path, tuple[StudyRun, StudyRun]] = {}
     for group in groups.values():
@@ -65,16 +65,24 @@ def plan_replicas(runs: Sequence[StudyRun], todo: Sequence[StudyRun]) -> dict[Pa
 
 
 def _episodes(run: StudyRun) -> dict[str, Any] | None:
-    """A finished controller run's episodes per pool without their timings (``None`` unless finished)."""
+    """A finished controller run's episodes per pool without their timings (``None`` unless finished and readable)."""
     rd = RunDirectory(run.path)
-    if rd.status != "finished" or rd.holder() is not None:
-        return None
     try:
-        state = json.loads(read_below(run.path, "control.json", 64 << 20))
-    except (FileNotFoundError, ValueError):
+        if rd.status != "finished" or rd.holder() is not None:
+            return None
+        state = strict_json(read_below(run.path, "control.json", MAX_JSON_BYTES), run.path / "control.json")
+    except (OSError, ValueError):  # missing, damaged or planted: no copy (the seeds train)
         return None
-    pools = {k: v for k, v in state.items() if isinstance(v, dict) and "chunks" in v}
-    return {pool: [{k: v for k, v in c.items() if k not in _TIMINGS} for c in body["chunks"]] for pool, body in pools.items()}
+    if not isinstance(state, dict):
+        return None
+    out = {}
+    for pool, body in state.items():
+        if isinstance(body, dict) and "chunks" in body:
+            chunks = body["chunks"]
+            if not isinstance(chunks, list) or not all(isinstance(c, dict) for c in chunks):
+                return None
+            out[pool] = [{k: v for k, v in c.items() if k not in _TIMINGS} for c in chunks]
+    return out
 
 
 def same_episodes(first: StudyRun, second: StudyRun) -> bool:
@@ -83,31 +91,66 @@ def same_episodes(first: StudyRun, second: StudyRun) -> bool:
     return a is not None and a == b and bool(a)
 
 
+#: the files a finished controller run holds that a copy takes (regular files only; nothing else is read)
+_COPIED = ("config.json", "config.request.json", "control.json", "evaluations.csv", "holdout.json", "episodes.csv")
+
+
 def replicate(source: StudyRun, target: StudyRun, checked: StudyRun, root: Path) -> None:
     """Make ``target``'s run directory a copy of ``source``'s with ``target``'s seed, naming both probes.
 
-    ``root``: the study's directory (the names of the probes are relative to it).
-
-    The copy is assembled beside the target and renamed into place: a crash leaves no half-made run.
+    ``root``: the study's directory (the names of the probes are relative to it). Only the run's own regular
+    files are copied, each read without following a link and within its size bound; the copy is assembled
+    beside the target and renamed into place, so a crash leaves no half-made run. Raises ``OSError`` or
+    ``ValueError`` (the caller trains that seed instead) where the source is not a finished run's files or the
+    target exists.
     """
+    if target.path.exists():
+        raise FileExistsError(f"{target.path} exists")
     parent = target.path.parent
     parent.mkdir(parents=True, exist_ok=True)
     staging = parent / f".{target.path.name}.replica"
     if staging.exists():
         shutil.rmtree(staging)
-    shutil.copytree(source.path, staging, symlinks=True, ignore=shutil.ignore_patterns("run.lock", "*.log"))
-    for name in ("config.json", "config.request.json"):
-        if not (staging / name).is_file():
-            continue
-        payload = json.loads(read_below(staging, name, 16 << 20))
-        if name == "config.json":
-            payload["config"]["seed"] = target.seed
-            payload[REPLICA_KEY] = {
-                "source": os.path.relpath(source.path, root),
-                "checked_against": os.path.relpath(checked.path, root),
-                "why": "a seed-free controller: its first two seeds played every episode identically",
-            }
-        else:
-            payload["seed"] = target.seed
-        atomic_write_bytes(staging / name, (json.dumps(payload, indent=2) + "\n").encode())
-    os.replace(staging, target.path)
+    staging.mkdir()
+    try:
+        for name in _COPIED:
+            try:
+                data = read_below(source.path, name, MAX_JSON_BYTES)
+            except FileNotFoundError:
+                if name == "config.json":
+                    raise
+                continue
+            if name in ("config.json", "config.request.json"):
+                payload = strict_json(data, source.path / name)
+                if not isinstance(payload, dict) or (name == "config.json" and not isinstance(payload.get("config"), dict)):
+                    raise ValueError(f"{source.path / name} is not a run's configuration")
+                if name == "config.json":
+                    payload["config"]["seed"] = target.seed
+                    payload[REPLICA_KEY] = {
+                        "source": os.path.relpath(source.path, root),
+                        "checked_against": os.path.relpath(checked.path, root),
+                        "why": "a seed-free controller: its first two seeds played every episode identically",
+                    }
+                else:
+                    payload["seed"] = target.seed
+                data = (json.dumps(payload, indent=2) + "\n").encode()
+            atomic_write_bytes(staging / name, data)
+        os.replace(staging, target.path)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    _fsync_directory(parent)
+
+
+def _fsync_directory(path: Path) -> None:
+    """Make a rename in ``path`` durable (where the platform allows it)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

@@ -82,8 +82,9 @@ def _transitions_to(runs: list[dict[str, Any]], threshold: float) -> dict[str, A
     """Real steps, and real steps plus imagined transitions, by the first evaluation reaching ``threshold``.
 
     Censored medians over ``runs`` (a run that never reached it needed more than its whole budget: its real
-    steps plus all its imagined transitions). ``None`` where a run with imagined transitions has no record of
-    when they were made (records made before they were logged with the curve).
+    steps plus all its imagined transitions). ``None`` where a run with imagined transitions has no count of
+    them at the evaluation that matters (records made before the curve carried it, or runs that logged
+    metrics only every ``log_every`` steps).
     """
     real, combined, budgets, combined_budgets, imagined_any = [], [], [], [], False
     for run in runs:
@@ -92,12 +93,14 @@ def _transitions_to(runs: list[dict[str, Any]], threshold: float) -> dict[str, A
         if made is None and (run.get("imagined_transitions") or 0) > 0:
             return None
         made = made or [0.0] * len(curve.get("step", []))
-        imagined_any = imagined_any or any(m > 0 for m in made)
         at = steps_to(run, threshold)
+        index = next((i for i, s in enumerate(curve.get("step", [])) if int(s) == at), None) if at is not None else None
+        if (index is not None and made[index] is None) or (made and made[-1] is None):
+            return None  # not logged at that evaluation (runs made before metrics were logged at each one)
+        imagined_any = imagined_any or any(m for m in made)
         budget = int(run.get("steps") or 0)
         real.append(at)
         budgets.append(budget)
-        index = next((i for i, s in enumerate(curve.get("step", [])) if int(s) == at), None) if at is not None else None
         combined.append(None if at is None or index is None else int(at + made[index]))
         combined_budgets.append(int(budget + (made[-1] if made else 0)))
     return {
@@ -298,6 +301,7 @@ def study_report(
         lines += ["### Hypotheses", "", "| id | claim | where | measure | probability of improvement | verdict |", _separator(6)]
         incomplete = bool(record.get("missing")) or bool(unfinished) or bool(record.get("mismatched"))
         both: list[tuple[str, str, float, dict[str, Any]]] = []  # steps hypotheses, counted with imagined transitions
+        uncounted: list[str] = []  # steps hypotheses whose arms imagine, without the counts to add them
         for h in spec.hypotheses:
             for (system, setting), arms in _groups(record).items():
                 if h.system is not None and system_id(h.system) != system:
@@ -324,6 +328,8 @@ def study_report(
                     if len(counted) == 2 and any(n["imagined"] for n in counted.values()):
                         with_imagined = counted
                         both.append((h.id, where, t, counted))
+                    elif len(counted) < 2:
+                        uncounted.append(f"{h.id} ({where})")
                 v = stats.verdict(poi, (g[h.better]["runs"], g[h.than]["runs"]))
                 if incomplete and not v.startswith("inconclusive"):
                     v = "inconclusive (runs missing or unfinished)"
@@ -356,6 +362,12 @@ def study_report(
                              stats.median_text(n["with_imagined"])]  # fmt: skip
                     lines.append("| " + " | ".join(_cell(x) for x in cells) + " |")
             lines.append("")
+        if uncounted:
+            lines += [
+                f"Not counted with the imagined transitions: {', '.join(uncounted)}; the record has no count of them at "
+                "the evaluations that matter (runs that logged metrics only every log_every steps).",
+                "",
+            ]
     if record.get("missing"):
         lines += [f"Runs not made yet: {len(record['missing'])} (the tables hold the runs made).", ""]
     if record.get("mismatched"):
@@ -401,9 +413,18 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
     if named:
         lines += ["", f"By the rule of docs/confirmatory.md, {' and '.join(named)}."]
     lines += ["", "The choices as a confirmatory spec's arms, one per method (to paste under `methods:`):", "", "```yaml"]
+    shared = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
+    if shared:  # what every candidate ran with besides its own settings (e.g. a wrong prior): the spec needs it too
+        lines.append(f"  # and this tuning study's overrides, which every candidate ran with: {_arm_entry_value(shared)}")
     for family, c in chosen.items():
         lines.append(f"  {family}: {_arm_entry(spec.arm(c['chosen']))}  # {c['chosen']}")
     return [*lines, "```"]
+
+
+def _arm_entry_value(value: Any) -> str:
+    import json
+
+    return json.dumps(value, default=list)
 
 
 def _rule_choices(spec: StudySpec, chosen: dict[str, Any]) -> dict[str, str | None]:

@@ -316,7 +316,7 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
             if run.t % cfg.eval_every == 0:
                 _evaluate(run)
                 event("evaluate", run)
-            if run.t % cfg.log_every == 0:
+            if run.t % cfg.log_every == 0 or run.t % cfg.eval_every == 0:  # a row at each evaluation too
                 _log_metrics(run)
             # 4. episode end: log it, checkpoint when due, reset
             if step.done:
@@ -330,7 +330,7 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
                     run.collector.reset(first=False)
         if run.t % cfg.eval_every != 0 or log.last_eval is None:
             _evaluate(run)
-        if run.t % cfg.log_every != 0:
+        if run.t % cfg.log_every != 0 and run.t % cfg.eval_every != 0:  # not logged in the loop's last step
             _log_metrics(run)
         run.save_checkpoint()
         return _finish(run)

@@ -762,27 +762,23 @@ class RunDirectory:
             },
         }
 
-    def _imagined_at(self, steps: list[int]) -> dict[str, list[float]]:
+    def _imagined_at(self, steps: list[int]) -> dict[str, list[float | None]]:
         """``{"imagined_total": [...]}``: the imagined transitions made by each of ``steps`` (a run with a model).
 
-        Read from ``metrics.csv`` (the last row logged at or before each step); ``{}`` for a run that logs no
-        imagined transitions (model-free runs, controllers) or has no metrics.
+        Read from the ``metrics.csv`` row logged at each step (runs log one at every evaluation; earlier runs
+        only every ``log_every`` steps: ``None`` where no row was logged at that step). ``{}`` for a run that
+        logs no imagined transitions (model-free runs, controllers), has no metrics, or whose metrics cannot
+        be read (the outcome does not depend on them).
         """
         log = CsvLog(self.path, "metrics.csv", [], numeric=("step", "imagined_total"), required=("step",))
         try:
             rows = [r for r in log.read() if r.get("imagined_total") not in (None, "")]
-        except FileNotFoundError:
+        except ValueError:  # a damaged metrics.csv (UnsafeFileError): no count, the run's outcome stands
             return {}
         if not rows:
             return {}
-        logged = [(int(float(r["step"])), float(r["imagined_total"])) for r in rows]
-        out, i, last = [], 0, 0.0
-        for step in steps:
-            while i < len(logged) and logged[i][0] <= step:
-                last = logged[i][1]
-                i += 1
-            out.append(last)
-        return {"imagined_total": out}
+        logged = {int(float(r["step"])): float(r["imagined_total"]) for r in rows}
+        return {"imagined_total": [logged.get(step) for step in steps]}
 
     def update_status(self, **fields: Any) -> None:
         """Set top-level ``fields`` of ``config.json`` (e.g. ``status``), keeping the rest."""
@@ -893,6 +889,8 @@ _TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("summary", _summary, "an object (with a finite wall_s, if any), or null"),
     ("command", lambda v: isinstance(v, str), "a string"),
     ("system", lambda v: isinstance(v, dict) and all(isinstance(x, str) for x in v.values()), "an object of strings"),
+    # a seed-free controller's copy (pimbrl.experiments.replicas): its source and the probe it was checked against
+    ("replicate_of", lambda v: isinstance(v, dict) and all(isinstance(x, str) for x in v.values()), "an object of strings"),
 )
 
 
