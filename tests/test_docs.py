@@ -107,3 +107,34 @@ def test_the_checks_catch_what_they_are_for() -> None:
         "```\n[fenced](nope.md)\n```\n"
     )
     assert relative_links(sample) == [(1, "results.md"), (1, "figures/a.png"), (2, "with space.md")]
+
+
+# ------------------------------------------------------------------------- confirmatory verdicts
+#: a row of docs/results.md's table of confirmatory hypotheses: | [study](#...) | id | claim | where | measure | poi | verdict |
+VERDICT_ROW = re.compile(r"^\| \[([^\]]+)\]\(#[^)]*\) \| ([^|]+?) \| [^|]*\| ([^|]+?) \| [^|]*\| [^|]*\| ([^|]+?) \|$", re.M)
+
+
+def readme_disagreements(results: str, readme: str) -> list[str]:
+    """Each confirmatory verdict of the generated results page that README's Findings do not state.
+
+    The README states each as ``**ID** (STUDY, WHERE): VERDICT`` on one line (the verdict's words up to any
+    parenthesis, e.g. ``inconclusive``).
+    """
+    findings = readme.split("## Findings", 1)[-1].split("\n## ", 1)[0]
+    missing = []
+    for study, hid, where, verdict in VERDICT_ROW.findall(results):
+        word = verdict.split(" (")[0].strip()
+        pattern = rf"\*\*{re.escape(hid.strip())}\*\* \({re.escape(study)}, {re.escape(where.strip())}\): {re.escape(word)}\b"
+        if not re.search(pattern, findings):
+            missing.append(f"{hid.strip()} ({study}, {where.strip()}): {word}")
+    return missing
+
+
+def test_the_readme_findings_state_every_confirmatory_verdict_of_the_results_page() -> None:
+    row = "| [c-b](#c-b-confirmatory) | H1a | claim | Burgers-v0 | real steps to -11 | 0.61 [0.40, 0.80] (95%) | inconclusive |"
+    readme = "# x\n\n## Findings\n\n- **H1a** (c-b, Burgers-v0): inconclusive, P = 0.61 [0.40, 0.80]\n\n## Next\n"
+    assert readme_disagreements(row, readme) == []
+    assert readme_disagreements(row, readme.replace("inconclusive", "supported")) == ["H1a (c-b, Burgers-v0): inconclusive"]
+    assert readme_disagreements(row, "## Findings\n\n## Other\n- **H1a** (c-b, Burgers-v0): inconclusive\n") != []
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert readme_disagreements(results, (ROOT / "README.md").read_text()) == [], "README Findings must state these verdicts"
