@@ -787,3 +787,19 @@ def test_a_model_based_run_logs_its_metrics_at_every_evaluation_so_its_curve_cou
     curve = RunDirectory(tmp_path / "run").result()["curve"]
     assert curve["step"] == [40.0, 80.0, 120.0] and None not in curve["imagined_total"]
     assert curve["imagined_total"][-1] > 0
+
+
+@pytest.mark.slow
+def test_the_pages_take_the_hand_written_preamble_from_whichever_spec_folder_has_it(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    paths = []
+    for folder in ("confirmatory", "studies"):
+        (tmp_path / folder).mkdir()
+        path = _spec(tmp_path / folder, name=f"{folder}.yaml", record={"path": f"{folder}.json", "format": "study"})
+        spec = load_spec(path)
+        record = {"runs": _fake_runs({"mfrl": -900.0}, 2), "thresholds": {}, "spec_sha256": spec.sha256}
+        (tmp_path / folder / f"{folder}.json").write_text(json.dumps(record))
+        paths.append(str(path))
+    (tmp_path / "studies" / "_reproduce.md").write_text("## The paper's figures\n\nby hand\n")
+    assert main(["study", "report", "--pages", str(tmp_path / "docs"), *paths]) == 0  # the folder without it first
+    assert "## The paper's figures\n\nby hand" in (tmp_path / "docs" / "reproduce.md").read_text()

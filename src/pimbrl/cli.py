@@ -502,8 +502,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
     log = lambda m: print(m, flush=True)
     if args.action == "report" and args.pages:
         specs = [load_spec(p) for p in args.specs]
-        header = Path(args.specs[0]).resolve().parent / "_reproduce.md"  # the page's hand-written part, if any
-        preamble = header.read_text(encoding="utf-8") if header.is_file() else ""
+        folders = dict.fromkeys(Path(p).resolve().parent for p in args.specs)  # the first holding the hand-written part
+        header = next((f / "_reproduce.md" for f in folders if (f / "_reproduce.md").is_file()), None)
+        preamble = header.read_text(encoding="utf-8") if header is not None else ""
         for path in write_pages(specs, args.pages, preamble=preamble):
             print(f"wrote {path}")
         return 0
