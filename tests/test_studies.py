@@ -731,6 +731,10 @@ def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_res
                "overrides": {"learn.coefficients": {"g": None}}}}  # fmt: skip
     spec = load_spec(_spec(tmp_path, methods={"feedback": methods["feedback"]}, seeds=4, overrides=overrides))
     root = tmp_path / "run"
+    from pimbrl.experiments.progress import progress_lines, study_progress
+
+    before = "\n".join(progress_lines(spec, study_progress(spec, root)))
+    assert "2 seeds of seed-free controllers are left out" in before  # the estimate charges only the probes
     logs: list[str] = []
     record = run_study(spec, root, jobs=2, status=False, log=logs.append)
     copied = [line for line in logs if line.startswith("copy ")]

@@ -103,6 +103,9 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
     groups: dict[str, list[RunProgress]] = {}
     for p in progress:
         groups.setdefault(p.run.label(spec.compact), []).append(p)
+    from .replicas import plan_replicas  # seeds a seed-free controller will copy cost nothing (if its probes agree)
+
+    copies = set(plan_replicas([p.run for p in progress], [p.run for p in progress if p.state == "not started"]))
     left_s, unknown = 0.0, []
     for label, ps in groups.items():
         done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
@@ -118,7 +121,7 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
             "hidden (confirmatory)" if hide and mean is not None else _minutes(mean) if mean is not None else "—",
         ]
         lines.append("| " + " | ".join(cells) + " |")
-        todo = [p for p in ps if p.state != "finished"]
+        todo = [p for p in ps if p.state != "finished" and p.run.path not in copies]
         if todo and mean is None:
             unknown.append(label)
         elif mean is not None:
@@ -130,6 +133,8 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
             f", plus {', '.join(unknown)}, which no finished run times yet"
             f" (the spec's plan: {spec.plan.strip() if spec.plan else 'not stated'})"
         )
+    if copies:
+        estimate += f"; {len(copies)} seeds of seed-free controllers are left out: they are copied if their first two agree"
     bad = [p for p in progress if p.state == "unreadable"]
     lines += [f"Unreadable: {p.run.path}: {p.why}" for p in bad] + ([""] if bad else [])
     lines += [
