@@ -659,6 +659,13 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
     block = report.markdown.split("```yaml\n")[1].split("```")[0]
     entries = load_yaml(block)  # the project's reader (YAML 1.2 numbers: 1.0e-5 is a number)
     assert set(entries) == set(spec.tuning) and entries["dpc"] == {"method": "dpc", "overrides": {"model.horizon": 40}}
+    recipe_block = report.markdown.split("```yaml\n")[2].split("```")[0]
+    recipe = load_yaml(recipe_block)  # the best recipe's sections, as src/pimbrl/systems/burgers.yaml holds them
+    from pimbrl.systems.presets import load_presets
+
+    best = load_presets(repo / "src" / "pimbrl" / "systems" / "burgers.yaml")[1]["best"]
+    assert recipe["methods"] == {k: dict(v) for k, v in best.methods.items()}
+    assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}
     confirmatory = load_spec(repo / "benchmarks" / "confirmatory" / "confirmatory-burgers.yaml")
     for arm in confirmatory.arms:  # the registered arms are the report's entries
         entry = entries[arm.name]

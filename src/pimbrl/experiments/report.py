@@ -418,7 +418,50 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
         lines.append(f"  # and this tuning study's overrides, which every candidate ran with: {_arm_entry_value(shared)}")
     for family, c in chosen.items():
         lines.append(f"  {family}: {_arm_entry(spec.arm(c['chosen']))}  # {c['chosen']}")
-    return [*lines, "```"]
+    lines.append("```")
+    sections = _recipe_sections(spec, chosen)
+    if sections:
+        lines += ["", "The choices as the system's `best` recipe sections (src/pimbrl/systems/SYSTEM.yaml; TD3 takes the "
+                  "better of its two families, each other agent its own utd):", "", "```yaml"]  # fmt: skip
+        for section, entries in sections.items():
+            lines.append(f"{section}:")
+            lines += [f"  {name}: {_arm_entry_value(values)}" for name, values in entries.items()]
+        lines.append("```")
+    return lines
+
+
+def _recipe_sections(spec: StudySpec, chosen: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:
+    """A recipe's ``methods:`` and ``agents:`` holding every method's choice (``{}`` where none can be written).
+
+    TD3 (method ``mfrl``) takes the family with the higher IQM among its own (one update per real step, or
+    the model-based recipe's: then with that ``utd``); every other agent takes its choice with its resolved
+    ``utd`` (a recipe's agent section comes last, after the ``mfrl`` method's). A study whose candidates share
+    overrides of their own (a wrong prior: not the system's recipe), or with two families of one method, gets
+    none.
+    """
+    from .engine import plan_study
+
+    if any(k != "eval_protocol" for k in spec.overrides):
+        return {}
+    utd = {r.arm: r.config.utd for r in plan_study(spec, Path("."))}
+    methods: dict[str, dict[str, Any]] = {}
+    agents: dict[str, dict[str, Any]] = {}
+    td3: list[tuple[float, dict[str, Any]]] = []
+    for c in chosen.values():
+        arm = spec.arm(c["chosen"])
+        own = dict(arm.overrides)
+        agent = own.pop("agent", None)
+        if arm.method == "mfrl" and agent not in (None, "td3"):
+            agents[str(agent)] = {"utd": utd[arm.name], **own}
+        elif arm.method == "mfrl":
+            td3.append((c["iqm"][c["chosen"]], {"utd": utd[arm.name], **own} if arm.match_updates else own))
+        elif arm.method in methods:
+            return {}
+        else:
+            methods[arm.method] = own
+    if td3:
+        methods = {"mfrl": max(td3, key=lambda t: t[0])[1], **methods}
+    return {"methods": methods, **({"agents": agents} if agents else {})}
 
 
 def _arm_entry_value(value: Any) -> str:
