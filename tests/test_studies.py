@@ -741,7 +741,7 @@ def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_res
     from pimbrl.experiments.progress import progress_lines, study_progress
 
     before = "\n".join(progress_lines(spec, study_progress(spec, root)))
-    assert "2 seeds of seed-free controllers are left out" in before  # the estimate charges only the probes
+    assert "2 seeds of seed-free controllers left out" in before  # the estimate charges only the probes
     logs: list[str] = []
     record = run_study(spec, root, jobs=2, status=False, log=logs.append)
     copied = [line for line in logs if line.startswith("copy ")]
@@ -770,6 +770,12 @@ def test_a_seed_free_controller_runs_two_seeds_and_copies_the_first_into_the_res
     logs.clear()
     record = run_study(spec, other, jobs=2, status=False, log=logs.append)
     assert not any(line.startswith("copy ") for line in logs) and all(r["replicate_of"] is None for r in record["runs"])
+    import shutil
+
+    for seed in (2, 3):  # probes that finished and disagree: the other seeds will train, and the estimate counts them
+        shutil.rmtree(other / "feedback" / f"seed{seed}")
+    text = "\n".join(progress_lines(spec, study_progress(spec, other)))
+    assert "2 not started" in text and "left out" not in text
     plan = plan_study(load_spec(_spec(tmp_path, name="m.yaml", methods=methods, seeds=3, overrides=overrides)), tmp_path / "m")
     assert [replicas.seed_free(r) for r in plan if r.seed == 0] == [True, False]  # an identifying MPC draws transitions
     grid = load_spec(_spec(tmp_path, name="g.yaml", methods={"feedback": methods["feedback"]}, seeds=3,
@@ -814,3 +820,41 @@ def test_the_pages_take_the_hand_written_preamble_from_whichever_spec_folder_has
     (tmp_path / "studies" / "_reproduce.md").write_text("## The paper's figures\n\nby hand\n")
     assert main(["study", "report", "--pages", str(tmp_path / "docs"), *paths]) == 0  # the folder without it first
     assert "## The paper's figures\n\nby hand" in (tmp_path / "docs" / "reproduce.md").read_text()
+
+
+def test_best_recipe_sections_resolve_to_each_chosen_arm_or_are_refused_with_the_reason(tmp_path, monkeypatch) -> None:
+    from pimbrl.experiments.report import _recipe_sections
+    from pimbrl.systems.presets import Recipe
+    from pimbrl.training import config as config_module
+    from pimbrl.training.config import config_to_dict
+
+    methods = {"td3-b64": {"method": "mfrl", "overrides": {"agent.batch_size": 64}},
+               "crossq-lr": {"method": "mfrl", "overrides": {"agent": "crossq", "agent.actor_lr": 3e-3}},
+               "mbrl-l3": {"method": "mbrl", "overrides": {"imagine.rollout_length": 3, "eval_protocol": "validation"}}}  # fmt: skip
+    tuning = {"mfrl": ["td3-b64"], "crossq": ["crossq-lr"], "mbrl": ["mbrl-l3"]}
+    spec = load_spec(_spec(tmp_path, methods=methods, tuning=tuning, seeds=1, overrides={"eval_protocol": "validation"}))
+    chosen = {f: {"candidates": c, "iqm": {c[0]: -1.0}, "chosen": c[0]} for f, c in tuning.items()}
+    sections, why = _recipe_sections(spec, chosen)
+    assert why == "" and "eval_protocol" not in sections["methods"]["mbrl"]  # an arm's protocol is not a recipe's
+    assert sections["agents"]["crossq"]["agent.batch_size"] != 64  # TD3's tuned batch does not leak into CrossQ's
+    default = config_module.recipe_of("pimbrl/Pendulum-v0")
+    best = Recipe("best", settings=default.settings, model_based=default.model_based, methods=sections["methods"],
+                  agents=sections["agents"])  # fmt: skip
+    monkeypatch.setattr(config_module, "recipe_of", lambda env, preset=None: best)
+    for run in plan_study(spec, tmp_path / "r"):  # each chosen arm's configuration comes back from the recipe
+        agent = "crossq" if run.arm == "crossq-lr" else "td3"
+        again = resolve_config("pimbrl/Pendulum-v0", {"method": run.config.method.name, "agent": agent, "seed": run.seed,
+                                                      "eval_protocol": "validation"})  # fmt: skip
+        assert config_to_dict(again) == config_to_dict(run.config), run.arm
+    monkeypatch.undo()
+    two = {**methods, "crossq-utd5": {"method": "mfrl", "overrides": {"agent": "crossq", "utd": 5.0}}}
+    spec2 = load_spec(_spec(tmp_path, name="t2.yaml", methods=two, seeds=1, overrides={"eval_protocol": "validation"},
+                            tuning={**tuning, "crossq-matched": ["crossq-utd5"]}))  # fmt: skip
+    chosen2 = {**chosen, "crossq-matched": {"candidates": ["crossq-utd5"], "iqm": {"crossq-utd5": 0.0}, "chosen": "crossq-utd5"}}
+    assert _recipe_sections(spec2, chosen2) == ({}, "two families tune the agent crossq")
+    grid = load_spec(_spec(tmp_path, name="t3.yaml", methods=methods, seeds=1, tuning=tuning, grid={"agent.gamma": [0.9, 0.99]},
+                           overrides={"eval_protocol": "validation"}))  # fmt: skip
+    assert _recipe_sections(grid, chosen)[1] == "the study has a grid (its choices are per setting)"
+    shared = load_spec(_spec(tmp_path, name="t4.yaml", methods=methods, seeds=1, tuning=tuning,
+                             overrides={"eval_protocol": "validation", "total_steps": 300}))  # fmt: skip
+    assert 'Every candidate also ran with the study\'s overrides {"total_steps": 300}' in _recipe_sections(shared, chosen)[1]

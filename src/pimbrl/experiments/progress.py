@@ -103,9 +103,13 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
     groups: dict[str, list[RunProgress]] = {}
     for p in progress:
         groups.setdefault(p.run.label(spec.compact), []).append(p)
-    from .replicas import plan_replicas  # seeds a seed-free controller will copy cost nothing (if its probes agree)
+    from .replicas import plan_replicas, same_episodes  # seeds a seed-free controller will copy cost nothing
 
-    copies = set(plan_replicas([p.run for p in progress], [p.run for p in progress if p.state == "not started"]))
+    state = {p.run.path: p.state for p in progress}
+    planned = plan_replicas([p.run for p in progress], [p.run for p in progress if p.state == "not started"])
+    copies = {  # not where both probes have finished and disagree: those seeds train (as with --no-replicas)
+        path for path, (a, b) in planned.items() if not (state[a.path] == state[b.path] == "finished" and not same_episodes(a, b))
+    }
     left_s, unknown = 0.0, []
     for label, ps in groups.items():
         done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
@@ -134,7 +138,10 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
             f" (the spec's plan: {spec.plan.strip() if spec.plan else 'not stated'})"
         )
     if copies:
-        estimate += f"; {len(copies)} seeds of seed-free controllers are left out: they are copied if their first two agree"
+        estimate += (
+            f"; {len(copies)} seed{'s' if len(copies) != 1 else ''} of seed-free controllers left out: copied if their "
+            "first two seeds agree (not with --no-replicas)"
+        )
     bad = [p for p in progress if p.state == "unreadable"]
     lines += [f"Unreadable: {p.run.path}: {p.why}" for p in bad] + ([""] if bad else [])
     lines += [

@@ -419,49 +419,76 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
     for family, c in chosen.items():
         lines.append(f"  {family}: {_arm_entry(spec.arm(c['chosen']))}  # {c['chosen']}")
     lines.append("```")
-    sections = _recipe_sections(spec, chosen)
-    if sections:
-        lines += ["", "The choices as the system's `best` recipe sections (src/pimbrl/systems/SYSTEM.yaml; TD3 takes the "
-                  "better of its two families, each other agent its own utd):", "", "```yaml"]  # fmt: skip
-        for section, entries in sections.items():
-            lines.append(f"{section}:")
-            lines += [f"  {name}: {_arm_entry_value(values)}" for name, values in entries.items()]
-        lines.append("```")
+    sections, why = _recipe_sections(spec, chosen)
+    if not sections:
+        return [*lines, "", f"No `best` recipe sections are written: {why}."]
+    lines += ["", "The choices as the system's `best` recipe sections (a recipe that extends the one the study ran; TD3 takes "
+              "the better of its two families, each other agent its own utd and the settings TD3's entry would "
+              "otherwise give it):", "", "```yaml"]  # fmt: skip
+    for section, entries in sections.items():
+        lines.append(f"{section}:")
+        lines += [f"  {name}: {_arm_entry_value(values)}" for name, values in entries.items()]
+    lines.append("```")
+    if why:
+        lines += ["", why + "."]
     return lines
 
 
-def _recipe_sections(spec: StudySpec, chosen: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:
-    """A recipe's ``methods:`` and ``agents:`` holding every method's choice (``{}`` where none can be written).
+def _recipe_sections(spec: StudySpec, chosen: dict[str, Any]) -> tuple[dict[str, dict[str, dict[str, Any]]], str]:
+    """A recipe's ``methods:`` and ``agents:`` holding every method's choice, and a note (or why there are none).
 
-    TD3 (method ``mfrl``) takes the family with the higher IQM among its own (one update per real step, or
-    the model-based recipe's: then with that ``utd``); every other agent takes its choice with its resolved
-    ``utd`` (a recipe's agent section comes last, after the ``mfrl`` method's). A study whose candidates share
-    overrides of their own (a wrong prior: not the system's recipe), or with two families of one method, gets
-    none.
+    Each chosen arm's configuration must come back when its method (and agent) resolves under a recipe that
+    extends the one the study ran, plus these sections (``settings``, ``model_based``, ``methods[method]``,
+    ``agents[agent]``, in that order). TD3 (method ``mfrl``) takes the family with the higher IQM among its
+    own; every other agent of ``mfrl`` takes its choice with its resolved ``utd`` and, for each setting TD3's
+    entry gives, its own resolved value (an agent section comes after ``methods.mfrl``). Where that cannot be
+    written (a grid, two families of one method or agent, a method run with another agent), none are.
     """
+    from ..training.config import get_setting
     from .engine import plan_study
 
-    if any(k != "eval_protocol" for k in spec.overrides):
-        return {}
-    utd = {r.arm: r.config.utd for r in plan_study(spec, Path("."))}
+    if spec.grid:
+        return {}, "the study has a grid (its choices are per setting)"
+    first: dict[str, Any] = {}
+    for r in plan_study(spec, Path(".")):
+        first.setdefault(r.arm, r.config)
     methods: dict[str, dict[str, Any]] = {}
-    agents: dict[str, dict[str, Any]] = {}
-    td3: list[tuple[float, dict[str, Any]]] = []
-    for c in chosen.values():
+    agents: dict[str, tuple[Any, dict[str, Any]]] = {}
+    td3: list[tuple[float, Any, dict[str, Any]]] = []
+    for family, c in chosen.items():
         arm = spec.arm(c["chosen"])
-        own = dict(arm.overrides)
-        agent = own.pop("agent", None)
-        if arm.method == "mfrl" and agent not in (None, "td3"):
-            agents[str(agent)] = {"utd": utd[arm.name], **own}
+        cfg = first[arm.name]
+        own = {k: v for k, v in arm.overrides.items() if k not in ("agent", "eval_protocol")}
+        agent = None if cfg.control else cfg.agent.name
+        if arm.method == "mfrl" and agent != "td3":
+            if agent in agents:
+                return {}, f"two families tune the agent {agent}"
+            agents[str(agent)] = (cfg, {"utd": cfg.utd, **own})
         elif arm.method == "mfrl":
-            td3.append((c["iqm"][c["chosen"]], {"utd": utd[arm.name], **own} if arm.match_updates else own))
+            td3.append((c["iqm"][c["chosen"]], cfg, {"utd": cfg.utd, **own} if arm.match_updates else own))
         elif arm.method in methods:
-            return {}
+            return {}, f"two families tune the method {arm.method} ({family} and another)"
+        elif agent not in (None, "td3"):
+            return {}, f"{family} runs {arm.method} with the agent {agent}, which a recipe's methods section cannot name"
         else:
             methods[arm.method] = own
+    out: dict[str, dict[str, dict[str, Any]]] = {}
     if td3:
-        methods = {"mfrl": max(td3, key=lambda t: t[0])[1], **methods}
-    return {"methods": methods, **({"agents": agents} if agents else {})}
+        methods = {"mfrl": max(td3, key=lambda t: t[0])[2], **methods}
+    out["methods"] = methods
+    if agents:  # TD3's entry comes first: every setting it gives, the agent gives its own value of
+        out["agents"] = {
+            name: {**entry, **{k: get_setting(cfg, k) for k in methods.get("mfrl", {}) if k not in entry}}
+            for name, (cfg, entry) in agents.items()
+        }
+    shared = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
+    why = ""
+    if shared:
+        why = (f"Every candidate also ran with the study's overrides {_arm_entry_value(shared)}: a `best` recipe that "
+               "keeps them puts them in its settings")  # fmt: skip
+    if spec.preset not in (None, "", "default"):
+        why = (why + "; " if why else "") + f"the study ran the recipe {spec.preset!r}: the `best` recipe extends it"
+    return out, why
 
 
 def _arm_entry_value(value: Any) -> str:
