@@ -514,7 +514,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
         for i, path in enumerate(args.specs):
             if i:
                 print()
-            _study_status(load_spec(path), _study_run_dir(path, load_spec(path).name, None), args.jobs)
+            each = load_spec(path)
+            _study_status(each, _study_run_dir(path, each.name, None), args.jobs)
         return 0
     if len(args.specs) != 1:
         raise ValueError(

@@ -37,6 +37,7 @@ __all__ = [
     "atomic_write_bytes",
     "check_below",
     "ensure_directory_below",
+    "fsync_directory",
     "new_file_mode",
     "open_below",
     "private_directory",
@@ -79,8 +80,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes | io.BytesIO) -> Non
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
-    try:  # make the rename itself durable
-        dir_fd = os.open(path.parent, os.O_RDONLY)
+    fsync_directory(path.parent)  # make the rename itself durable
+
+
+def fsync_directory(path: str | os.PathLike) -> None:
+    """Make the renames in directory ``path`` durable, where the platform allows it (errors are ignored)."""
+    try:
+        dir_fd = os.open(path, os.O_RDONLY)
         try:
             os.fsync(dir_fd)
         finally:

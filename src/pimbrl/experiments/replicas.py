@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..fileio import MAX_JSON_BYTES, atomic_write_bytes, read_below, strict_json
+from ..fileio import MAX_JSON_BYTES, atomic_write_bytes, fsync_directory, read_below, strict_json
 from ..training.rundir import RunDirectory
 
 if TYPE_CHECKING:
@@ -139,18 +139,4 @@ def replicate(source: StudyRun, target: StudyRun, checked: StudyRun, root: Path)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    _fsync_directory(parent)
-
-
-def _fsync_directory(path: Path) -> None:
-    """Make a rename in ``path`` durable (where the platform allows it)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+    fsync_directory(parent)

@@ -266,9 +266,10 @@ def study_report(
         if spec.tuning:
             chosen = _tuning_choices(spec, group)
             computed["groups"][key]["tuning"] = chosen
-            if all(c["chosen"] for c in chosen.values()):
-                computed["groups"][key]["tuning_rules"] = _rule_choices(spec, chosen)
-            lines += ["", *_tuning_table(spec, chosen)]
+            rules = _rule_choices(spec, chosen) if all(c["chosen"] for c in chosen.values()) else None
+            if rules is not None:
+                computed["groups"][key]["tuning_rules"] = rules
+            lines += ["", *_tuning_table(spec, chosen, rules)]
         pairs = [p for p in spec.comparisons if p[0] in group and p[1] in group]
         if pairs:
             lines += ["", _comparison_header(spec, thresholds), _separator(3 + len(thresholds))]
@@ -394,7 +395,11 @@ def _tuning_choices(spec: StudySpec, group: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
+def _tuning_table(spec: StudySpec, chosen: dict[str, Any], rules: dict[str, str | None] | None) -> list[str]:
+    """The tuning table, and with every choice made, the choices as a spec's arms and a recipe's sections.
+
+    ``rules``: :func:`_rule_choices` of ``chosen`` once every method has its choice, else ``None``.
+    """
     first = next(iter(spec.tuning.values()))
     lines = [
         f"Tuning ({len(first)} candidates x {len(spec.seeds_of(first[0]))} seeds per method, chosen by the IQM of the "
@@ -406,16 +411,15 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
     for family, c in chosen.items():
         listed = ", ".join(f"{arm} ({c['iqm'][arm]:.4g})" if arm in c["iqm"] else f"{arm} (no runs)" for arm in c["candidates"])
         lines.append(f"| {_cell(family)} | {_cell(listed)} | {_cell(c['chosen'] or 'not yet: runs missing or unfinished')} |")
-    if not all(c["chosen"] for c in chosen.values()):
+    if rules is None:
         return lines
-    rules = _rule_choices(spec, chosen)
     named = [f"the {what} is {f} ({chosen[f]['iqm'][chosen[f]['chosen']]:.4g})" for what, f in rules.items() if f]
     if named:
         lines += ["", f"By the rule of docs/confirmatory.md, {' and '.join(named)}."]
     lines += ["", "The choices as a confirmatory spec's arms, one per method (to paste under `methods:`):", "", "```yaml"]
-    shared = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
+    shared = _shared_overrides(spec)
     if shared:  # what every candidate ran with besides its own settings (e.g. a wrong prior): the spec needs it too
-        lines.append(f"  # and this tuning study's overrides, which every candidate ran with: {_arm_entry_value(shared)}")
+        lines.append(f"  # and this tuning study's overrides, which every candidate ran with: {_json_line(shared)}")
     for family, c in chosen.items():
         lines.append(f"  {family}: {_arm_entry(spec.arm(c['chosen']))}  # {c['chosen']}")
     lines.append("```")
@@ -427,7 +431,7 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any]) -> list[str]:
               "otherwise give it):", "", "```yaml"]  # fmt: skip
     for section, entries in sections.items():
         lines.append(f"{section}:")
-        lines += [f"  {name}: {_arm_entry_value(values)}" for name, values in entries.items()]
+        lines += [f"  {name}: {_json_line(values)}" for name, values in entries.items()]
     lines.append("```")
     if why:
         lines += ["", why + "."]
@@ -481,17 +485,23 @@ def _recipe_sections(spec: StudySpec, chosen: dict[str, Any]) -> tuple[dict[str,
             name: {**entry, **{k: get_setting(cfg, k) for k in methods.get("mfrl", {}) if k not in entry}}
             for name, (cfg, entry) in agents.items()
         }
-    shared = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
+    shared = _shared_overrides(spec)
     why = ""
     if shared:
-        why = (f"Every candidate also ran with the study's overrides {_arm_entry_value(shared)}: a `best` recipe that "
+        why = (f"Every candidate also ran with the study's overrides {_json_line(shared)}: a `best` recipe that "
                "keeps them puts them in its settings")  # fmt: skip
     if spec.preset not in (None, "", "default"):
         why = (why + "; " if why else "") + f"the study ran the recipe {spec.preset!r}: the `best` recipe extends it"
     return out, why
 
 
-def _arm_entry_value(value: Any) -> str:
+def _shared_overrides(spec: StudySpec) -> dict[str, Any]:
+    """A tuning study's overrides besides its evaluation protocol: what every candidate also ran with."""
+    return {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
+
+
+def _json_line(value: Any) -> str:
+    """``value`` on one line as JSON, which YAML reads (tuples as lists)."""
     import json
 
     return json.dumps(value, default=list)
@@ -518,14 +528,12 @@ def _rule_choices(spec: StudySpec, chosen: dict[str, Any]) -> dict[str, str | No
 
 def _arm_entry(arm: Any) -> str:
     """An arm as a spec's one-line entry (JSON is YAML): its method, match_updates and overrides."""
-    import json
-
     entry: dict[str, Any] = {"method": arm.method}
     if arm.match_updates:
         entry["match_updates"] = True
     if arm.overrides:
         entry["overrides"] = arm.overrides
-    return json.dumps(entry, default=list)
+    return _json_line(entry)
 
 
 def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: str, link_base: str | Path | None) -> list[str]:
@@ -776,15 +784,19 @@ def write_pages(
         if spec.record is not None and spec.record.format != "study":
             command = spec.record.command or "(not recorded)"
         else:
-            command = f"pimbrl study run {_spec_path(spec, docs.parent)} --run-dir runs/{spec.name}"
+            command = _run_command(spec, docs.parent)
         repro.append(f"| [{spec.name}](results.md#{_anchor(spec.name, r.label)}) | {r.label} | `{_cell(command)}` |")
     for spec in specs:
         if spec.name in waiting:
-            command = f"pimbrl study run {_spec_path(spec, docs.parent)} --run-dir runs/{spec.name}"
-            repro.append(f"| {spec.name} | confirmatory spec, no record yet | `{_cell(command)}` |")
+            repro.append(f"| {spec.name} | confirmatory spec, no record yet | `{_cell(_run_command(spec, docs.parent))}` |")
     reproduce = docs / "reproduce.md"
     atomic_write_bytes(reproduce, ("\n".join(repro) + "\n").encode())
     return [results, reproduce, *[f for _, r in reports for f in r.figures]]
+
+
+def _run_command(spec: StudySpec, root: Path) -> str:
+    """The command that runs ``spec`` from ``root`` (the repository) into ``runs/<name>``."""
+    return f"pimbrl study run {_spec_path(spec, root)} --run-dir runs/{spec.name}"
 
 
 def _spec_path(spec: StudySpec, root: Path | None) -> str:
