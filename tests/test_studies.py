@@ -13,6 +13,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pimbrl.cli import main
@@ -263,6 +264,53 @@ def test_intervals_are_reproducible_and_contain_their_estimate() -> None:
     assert d.value == 1.0 and d.n == 2  # seeds both ran: 0 and 1
     assert stats.mean_interval([]).text() == "—" and stats.mean_interval([4.0]).text() == "4.00 [4.00, 4.00]"
     assert math.isnan(stats.probability_of_improvement([], [1.0]).value)
+
+
+def _rliable_interval(scores: list[np.ndarray], func, reps: int, seed: int) -> tuple[float, float, float]:
+    """rliable's own stratified-bootstrap estimate, the way this project called it before it was vectorised."""
+    import warnings
+
+    from rliable import library
+
+    saved = np.random.get_state()
+    np.random.seed(seed)  # rliable draws its resamples from the global generator
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", category=FutureWarning)
+            point, interval = library.get_interval_estimates(
+                {"x": [s.reshape(-1, 1) for s in scores] if len(scores) > 1 else scores[0].reshape(-1, 1)},
+                lambda *a: np.array([func(*a)]),
+                reps=reps,
+                random_state=np.random.RandomState(seed),
+            )
+    finally:
+        np.random.set_state(saved)
+    return float(point["x"][0]), float(interval["x"][0, 0]), float(interval["x"][1, 0])
+
+
+def test_vectorised_intervals_are_rliables_to_the_last_bit() -> None:
+    """The vectorised bootstrap draws rliable's resamples and computes its statistics: every number is identical."""
+    from rliable import metrics
+
+    rng = np.random.default_rng(7)
+    for case in range(6):
+        n, m = int(rng.integers(2, 11)), int(rng.integers(2, 11))
+        x = np.round(rng.normal(size=n) * 10, case % 3)  # rounded: ties, as steps to a threshold have
+        y = np.round(rng.normal(size=m) * 10, case % 3)
+        if case % 2:
+            x[: n // 3] = -np.inf  # censored runs (stats.steps_scores)
+        seed = case
+        finite = x[np.isfinite(x)] if len(x[np.isfinite(x)]) > 1 else y
+        got = stats.iqm_interval(finite, reps=300, seed=seed)
+        assert (got.value, got.low, got.high) == _rliable_interval([finite], metrics.aggregate_iqm, 300, seed)
+        got = stats.mean_interval(y, reps=300, seed=seed)
+        assert (got.value, got.low, got.high) == _rliable_interval([y], np.mean, 300, seed)
+        got = stats.probability_of_improvement(x, y, reps=300, seed=seed)
+        ranked = stats._ranked(x, y)
+        assert (got.value, got.low, got.high) == _rliable_interval(list(ranked), metrics.probability_of_improvement, 300, seed)
+    state = np.random.get_state()[1].copy()
+    stats.probability_of_improvement([1.0, 2.0], [0.0, 3.0], reps=50)
+    assert (np.random.get_state()[1] == state).all()  # the caller's global generator is left as it was
 
 
 @pytest.mark.slow

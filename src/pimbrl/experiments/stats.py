@@ -1,7 +1,8 @@
 """The statistics of a study: intervals, probability of improvement, censored steps to a threshold.
 
-Intervals come from rliable's stratified bootstrap; steps to a threshold treat runs that never reached
-it as censored.
+Intervals are rliable's stratified-bootstrap percentile intervals, computed here in one vectorised pass over
+rliable's own draws (the same resamples, so the same numbers; a test compares the two); steps to a
+threshold treat runs that never reached it as censored.
 
 rliable (Agarwal et al. 2021) gives the interquartile mean, the stratified-bootstrap confidence intervals,
 the probability of improvement and performance profiles. Steps to a threshold is a time-to-event measure:
@@ -64,42 +65,47 @@ def threshold_key(threshold: float) -> str:
     return f"{float(threshold):g}"
 
 
-def _state(seed: int) -> np.random.RandomState:
-    return np.random.RandomState(seed)
+def _resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.ndarray]:
+    """The indices of ``reps`` stratified-bootstrap resamples of arrays of ``sizes`` runs: one ``(reps, n)`` array each.
 
-
-def _estimate(
-    scores: Sequence[np.ndarray], func: Callable[..., float], confidence: float, reps: int, seed: int
-) -> tuple[float, float, float]:
-    """The point estimate of ``func(*scores)`` and its stratified-bootstrap interval (rliable)."""
-    from rliable import library
-
-    arrays = [np.asarray(s, dtype=float).reshape(-1, 1) for s in scores]
-    # rliable's stratified bootstrap draws its indices from NumPy's global generator (its random_state reaches
-    # arch only): seeded here, and the caller's global state put back afterwards
+    They are rliable's draws, in its order: NumPy's global generator seeded with ``seed`` (rliable's
+    ``StratifiedBootstrap`` draws there; the ``random_state`` it is given reaches arch only), one
+    ``choice(n, (n, 1))`` per array and resample. The caller's global state is put back afterwards.
+    """
     saved = np.random.get_state()
     np.random.seed(seed)
     try:
-        return _interval_estimate(library, arrays, func, confidence, reps, seed)
+        if len(sizes) == 1:  # consecutive draws of one bound are one draw of their total size
+            n = int(sizes[0])
+            return [np.random.choice(n, (reps, n), replace=True)]
+        out = [np.empty((reps, int(n)), dtype=np.int64) for n in sizes]
+        for r in range(reps):
+            for indices, n in zip(out, sizes):
+                indices[r] = np.random.choice(int(n), (int(n), 1), replace=True)[:, 0]
+        return out
     finally:
         np.random.set_state(saved)
 
 
-def _interval_estimate(
-    library: Any, arrays: list[np.ndarray], func: Callable[..., float], confidence: float, reps: int, seed: int
-) -> tuple[float, float, float]:
-    import warnings
+def _percentile_interval(results: np.ndarray, confidence: float) -> tuple[float, float]:
+    """The percentile interval of bootstrap ``results`` (arch's ``conf_int(method="percentile")``)."""
+    alpha = (1.0 - confidence) / 2
+    low, high = np.percentile(results, [100 * alpha, 100 * (1.0 - alpha)])
+    return float(low), float(high)
 
-    with warnings.catch_warnings():  # arch asks for a Generator; rliable passes the RandomState it documents
-        warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
-        point, interval = library.get_interval_estimates(
-            {"x": arrays if len(arrays) > 1 else arrays[0]},
-            lambda *a: np.array([func(*a)]),
-            reps=reps,
-            confidence_interval_size=confidence,
-            random_state=_state(seed),
-        )
-    return float(point["x"][0]), float(interval["x"][0, 0]), float(interval["x"][1, 0])
+
+def _trimmed_means(samples: np.ndarray) -> np.ndarray:
+    """The interquartile mean of each row (scipy's ``trim_mean(row, 0.25)``, row by row, in one call)."""
+    n = samples.shape[1]
+    cut = int(0.25 * n)
+    kept = np.partition(samples, (cut, n - cut - 1), axis=1)[:, cut : n - cut]
+    return np.mean(kept, axis=1)
+
+
+def _improvements(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """P(X > Y), ties counted half, for each row pair of ``x`` ``(R, n)`` and ``y`` ``(R, m)``: Mann-Whitney's U / nm."""
+    bx, by = x[:, :, None], y[:, None, :]
+    return ((bx > by).sum((1, 2)) + 0.5 * (bx == by).sum((1, 2))) / (x.shape[1] * y.shape[1])
 
 
 def iqm(values: Sequence[float]) -> float:
@@ -109,27 +115,28 @@ def iqm(values: Sequence[float]) -> float:
     return float(metrics.aggregate_iqm(np.asarray(values, dtype=float).reshape(-1, 1)))
 
 
-def _over_runs(values: Sequence[float], func: Callable[[np.ndarray], float], confidence: float, reps: int, seed: int) -> Interval:
-    """``func`` over the runs' ``values`` with its bootstrap interval (a point without width for one run)."""
-    values = [float(v) for v in values]
-    if not values:
+def _over_runs(
+    values: Sequence[float], func: Callable[[np.ndarray], np.ndarray], confidence: float, reps: int, seed: int
+) -> Interval:
+    """``func`` (of runs along axis 1) over the runs' ``values`` with its bootstrap interval (one run: no width)."""
+    x = np.array([float(v) for v in values])
+    if not len(x):
         return Interval(math.nan, math.nan, math.nan, 0)
-    if len(values) == 1:
-        return Interval(values[0], values[0], values[0], 1)
-    value, low, high = _estimate([np.array(values)], func, confidence, reps, seed)
-    return Interval(value, low, high, len(values))
+    if len(x) == 1:
+        return Interval(float(x[0]), float(x[0]), float(x[0]), 1)
+    (indices,) = _resamples([len(x)], reps, seed)
+    low, high = _percentile_interval(func(x[indices]), confidence)
+    return Interval(float(func(x[None, :])[0]), low, high, len(x))
 
 
 def iqm_interval(values: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0) -> Interval:
     """The IQM over runs with its stratified-bootstrap interval (a point without width for one run)."""
-    from rliable import metrics
-
-    return _over_runs(values, lambda s: float(metrics.aggregate_iqm(s)), confidence, reps, seed)
+    return _over_runs(values, _trimmed_means, confidence, reps, seed)
 
 
 def mean_interval(values: Sequence[float], confidence: float = 0.95, reps: int = 10_000, seed: int = 0) -> Interval:
     """The mean over runs with its bootstrap interval."""
-    return _over_runs(values, lambda s: float(np.mean(s)), confidence, reps, seed)
+    return _over_runs(values, lambda s: np.mean(s, axis=1), confidence, reps, seed)
 
 
 def probability_of_improvement(
@@ -139,16 +146,14 @@ def probability_of_improvement(
 
     Scores may hold ``-inf`` (a censored run ranked below every finite one, e.g. :func:`steps_scores`).
     """
-    from rliable import metrics
-
     x = np.asarray(better, dtype=float)
     y = np.asarray(than, dtype=float)
     if len(x) == 0 or len(y) == 0:
         return Interval(math.nan, math.nan, math.nan, 0)
     x, y = _ranked(x, y)
-    func = lambda a, b: float(metrics.probability_of_improvement(a, b))
-    value, low, high = _estimate([x, y], func, confidence, reps, seed)
-    return Interval(value, low, high, min(len(x), len(y)))
+    ix, iy = _resamples([len(x), len(y)], reps, seed)
+    low, high = _percentile_interval(_improvements(x[ix], y[iy]), confidence)
+    return Interval(float(_improvements(x[None, :], y[None, :])[0]), low, high, min(len(x), len(y)))
 
 
 def _ranked(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
