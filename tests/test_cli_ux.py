@@ -164,6 +164,27 @@ def test_an_unreadable_toml_sweep_file_is_a_message(tmp_path, capsys) -> None:
     assert _error_line(capsys).startswith(f"pimbrl sweep: error: {path}: not valid TOML")
 
 
+@pytest.mark.parametrize("flag", [[], ["--no-replicas"]])
+def test_compare_and_sweep_pass_no_replicas_to_the_study_engine(flag: list[str], tmp_path, monkeypatch) -> None:
+    """As `study run --no-replicas`: every seed of a seed-free controller trains (the engine is stubbed here)."""
+    from pimbrl.experiments import compare as compare_module
+    from pimbrl.experiments import sweep as sweep_module
+
+    seen: list[bool] = []
+
+    def engine(*args, **kwargs):
+        seen.append(kwargs["replicas"])
+        return {"failed": []}
+
+    monkeypatch.setattr(compare_module, "run_study", engine)
+    monkeypatch.setattr(sweep_module, "run_study", engine)
+    main(["compare", "pendulum", "--methods", "feedback", "--seeds", "3", "--run-dir", str(tmp_path / "c"), *flag])
+    path = tmp_path / "sweep.json"
+    path.write_text('{"envs": ["pendulum"], "methods": ["feedback"], "seeds": [0, 1, 2]}')
+    main(["sweep", str(path), "--run-dir", str(tmp_path / "s"), "--no-ray", *flag])
+    assert seen == [not flag, not flag]
+
+
 # ---------------------------------------------------------------------------------- --env-kwargs
 @pytest.mark.parametrize(
     ("value", "expected"),

@@ -487,6 +487,33 @@ def _status_reads_states_and_steps_but_no_return(path: Path, root: Path, capsys)
     assert "0 interrupted, 1 not started, 1 unreadable" in out and f"Unreadable: {root / 'mfrl' / 'seed1'}: " in out
 
 
+def test_status_counts_a_dpc_runs_gradient_steps(tmp_path, capsys) -> None:
+    """A DPC run has no evaluations while it trains: status reads its gradient steps from control.json."""
+    from pimbrl.experiments.engine import plan_study
+    from pimbrl.experiments.progress import progress_lines, study_progress
+    from pimbrl.training import create_run
+    from pimbrl.training.rundir import RunDirectory
+
+    overrides = {"model.iterations": 400, "model.horizon": 3, "eval_episodes": 2}
+    spec = load_spec(_spec(tmp_path, methods={"dpc": {"overrides": overrides}}, overrides={}, seeds=2))
+    root = tmp_path / "root"
+    runs = plan_study(spec, root)
+    for run, steps in zip(runs, (100, 300)):
+        create_run(run.config, run.path, progress=False).run_dir.close()  # started, then stopped
+        (run.path / "control.json").write_text(json.dumps({"dpc": {"steps": steps}, "wall_s": 60.0}))
+    writer = RunDirectory(runs[0].path)
+    writer.lock()
+    try:
+        progress = study_progress(spec, root)
+        assert [(p.state, p.steps, p.total_steps) for p in progress] == [("running", 100, 400), ("interrupted", 300, 400)]
+        text = "\n".join(progress_lines(spec, progress))
+        assert "| dpc | 0/2 | 1 (100/400 DPC steps) | 1 | 0 |" in text
+    finally:
+        writer.close()
+    (runs[1].path / "control.json").write_text("[1]")  # damaged: named, not a crash
+    assert study_progress(spec, root)[1].state == "unreadable"
+
+
 @pytest.mark.slow
 def test_compare_writes_its_spec_and_the_study_report_reads_it(tmp_path) -> None:
     from pimbrl.experiments.compare import compare

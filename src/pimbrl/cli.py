@@ -413,6 +413,7 @@ def _cmd_compare(args: argparse.Namespace, extra: list[str]) -> int:
         rerun=args.rerun,
         imports=args.imports,
         preset=args.preset,
+        replicas=not args.no_replicas,
     )
     thr = result["threshold"]
     print(f"{env_id}: threshold {thr}")
@@ -457,6 +458,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         num_cpus=args.cpus,
         log=lambda m: print(m, flush=True),
         imports=args.imports,
+        replicas=not args.no_replicas,
     )
     print(
         f"{len(result['rows'])} trials with results, {result['executed']} run now; "
@@ -755,6 +757,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a run directory that holds a run of another configuration (e.g. another --steps) is moved aside "
         "(to seed<k>.replaced-<time>) and trained again; without it, that is an error",
     )
+    _add_no_replicas(cp)
     _add_import(cp)
     cp.set_defaults(func=_cmd_compare, takes_extra=True)
 
@@ -769,6 +772,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--address", default=None, help="address of an existing Ray cluster (e.g. ray://host:10001 or auto)")
     sw.add_argument("--no-ray", action="store_true", help="run the trials as local processes, --cpus at a time")
     sw.add_argument("--cpus", type=int, default=None, help="trials at a time: Ray's local CPUs or local processes (default: all)")
+    _add_no_replicas(sw)
     _add_import(sw)
     sw.set_defaults(func=_cmd_sweep)
 
@@ -789,12 +793,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--backend", choices=("local", "ray"), default="local", help="run: local processes or Ray tasks")
     st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
     st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")
-    st.add_argument(
-        "--no-replicas",
-        action="store_true",
-        help="run: train every seed of a seed-free controller (feedback, MPC without identification) instead of "
-        "copying its first seed where its first two agree on every episode",
-    )
+    _add_no_replicas(st, "run: ")
     st.add_argument("--out", default=None, help="report: directory of report.md and figures (default: the run directory)")
     st.add_argument("--pages", default=None, metavar="DOCS", help="report: write DOCS/results.md and DOCS/reproduce.md")
     _add_import(st)
@@ -828,6 +827,15 @@ def _version() -> str:
         return version("pimbrl")
     except PackageNotFoundError:  # run from a source tree that is not installed
         return "unknown (not installed)"
+
+
+def _add_no_replicas(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    parser.add_argument(
+        "--no-replicas",
+        action="store_true",
+        help=f"{prefix}train every seed of a seed-free controller (feedback, MPC without identification) instead of "
+        "copying its first seed where its first two agree on every episode",
+    )
 
 
 def _add_import(parser: argparse.ArgumentParser) -> None:

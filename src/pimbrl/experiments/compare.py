@@ -321,10 +321,12 @@ def compare(
     status: bool = True,
     imports: Sequence[str] = (),
     preset: str | None = None,
+    replicas: bool = True,
 ) -> dict[str, Any]:
     """Run (what is missing of) a comparison and write its figure and tables.
 
-    ``preset`` names the system's recipe every run starts from (``None``: its default).
+    ``preset`` names the system's recipe every run starts from (``None``: its default). ``replicas``: as
+    :func:`~.engine.run_study`'s (a seed-free controller trains two seeds and copies the first where they agree).
 
     With ``run=False`` nothing is started: the runs are summarised as they stand (unfinished ones up to
     their last evaluation). A run directory holding a run of another configuration is an error, or, with
@@ -344,7 +346,7 @@ def compare(
     failed: list[str] = []
     if run:
         root.mkdir(parents=True, exist_ok=True)
-        record = run_study(spec, root, jobs=jobs, rerun=rerun, status=status, log=log)
+        record = run_study(spec, root, jobs=jobs, rerun=rerun, replicas=replicas, status=status, log=log)
         failed = record["failed"]
     if threshold is None:
         threshold = resolve_config(env_id, {"method": "mfrl"}, preset=preset).threshold

@@ -12,7 +12,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+from ..fileio import MAX_JSON_BYTES, read_below, strict_json
+from ..training.control_run import CONTROL_FILE
+from ..training.methods import DPC
 from ..training.rundir import RunDirectory
 from .engine import StudyRun, plan_study
 from .spec import StudySpec
@@ -32,7 +36,8 @@ class RunProgress:
         state: ``finished``, ``running`` (another process holds its lock), ``interrupted`` (started, not
             finished, nobody writing it: ``pimbrl study run`` resumes it), ``not started`` or ``unreadable``
             (a damaged file: ``why`` says which).
-        steps: its real steps at its last evaluation (0 before the first).
+        steps: its real steps at its last evaluation (0 before the first); a DPC run's gradient steps
+            through the scheme so far (from its ``control.json``).
         wall_s: its training wall-clock so far in seconds (a finished run's whole), ``None`` before the first
             evaluation.
     """
@@ -45,8 +50,16 @@ class RunProgress:
 
     @property
     def total_steps(self) -> int:
-        """The real steps the run is configured to take."""
-        return int(self.run.config.total_steps)
+        """The real steps the run is configured to take (a DPC run: its gradient steps through the scheme)."""
+        method = self.run.config.method
+        return int(method.iterations) if isinstance(method, DPC) else int(self.run.config.total_steps)
+
+    @property
+    def steps_text(self) -> str:
+        """How far a running run has come: ``"1,200/3,000"``, ``"750/3,000 DPC steps"`` or ``"a controller"``."""
+        if isinstance(self.run.config.method, DPC):
+            return f"{self.steps:,}/{self.total_steps:,} DPC steps"
+        return "a controller" if self.run.config.control else f"{self.steps:,}/{self.total_steps:,}"
 
 
 def _progress(run: StudyRun) -> RunProgress:
@@ -65,6 +78,10 @@ def _read_progress(run: StudyRun) -> RunProgress:
     rows = rd.evaluations.read()
     steps = int(float(rows[-1]["step"])) if rows else 0
     wall = float(rows[-1]["wall_s"]) if rows else None
+    if isinstance(run.config.method, DPC):  # no evaluations: its gradient steps and wall-clock are in control.json
+        stages = _control_stages(rd)
+        steps = int((stages.get("dpc") or {}).get("steps", 0))
+        wall = float(stages["wall_s"]) if "wall_s" in stages else None
     if rd.holder() is not None:
         state = "running"
     elif payload.get("status") == "finished":
@@ -73,6 +90,17 @@ def _read_progress(run: StudyRun) -> RunProgress:
     else:
         state = "interrupted"
     return RunProgress(run, state, steps, wall)
+
+
+def _control_stages(rd: RunDirectory) -> dict[str, Any]:
+    """A control run's ``control.json`` (empty before its first stage); a damaged one is a :class:`ValueError`."""
+    path = rd.path / CONTROL_FILE
+    if not path.exists():
+        return {}
+    payload = strict_json(read_below(rd.path, CONTROL_FILE, MAX_JSON_BYTES), path)
+    if not isinstance(payload, dict):
+        raise ValueError(f"{path} is not a JSON object")
+    return payload
 
 
 def study_progress(spec: StudySpec, root: str | Path) -> list[RunProgress]:
@@ -114,8 +142,7 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
     for label, ps in groups.items():
         done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
         mean = sum(done) / len(done) if done else None
-        running = [f"{p.steps:,}/{p.total_steps:,}" if not p.run.config.control else "a controller" for p in ps
-                   if p.state == "running"]  # fmt: skip
+        running = [p.steps_text for p in ps if p.state == "running"]
         cells = [
             label,
             f"{sum(p.state == 'finished' for p in ps)}/{len(ps)}",

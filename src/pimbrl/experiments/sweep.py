@@ -272,8 +272,12 @@ def run_sweep(
     num_cpus: int | None = None,
     log: Callable[[str], None] = print,
     imports: Sequence[str] = (),
+    replicas: bool = True,
 ) -> dict[str, Any]:
     """Run the unfinished trials of ``spec`` (a study, :func:`sweep_study`) and aggregate all of them into ``root``.
+
+    ``replicas``: as :func:`~.engine.run_study`'s (a seed-free controller trains two seeds and copies the first
+    where they agree).
 
     ``imports``: the ``--import`` arguments every trial's process loads first (files as absolute paths, so
     that a Ray worker in another directory finds them). Without Ray (or ``use_ray=False``) the trials run as
@@ -290,7 +294,8 @@ def run_sweep(
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     jobs = num_cpus or cores
     before = sum(1 for t in trials if RunDirectory(t.path).status == "finished")
-    record = run_study(study, root, jobs=jobs, backend="ray" if use_ray else "local", address=address, status=False, log=log)
+    backend = "ray" if use_ray else "local"
+    record = run_study(study, root, jobs=jobs, backend=backend, address=address, replicas=replicas, status=False, log=log)
     result = aggregate(spec, trials)
     for line in result["unreadable"]:
         log(f"UNREADABLE {line}")
