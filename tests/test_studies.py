@@ -308,6 +308,9 @@ def test_vectorised_intervals_are_rliables_to_the_last_bit() -> None:
         got = stats.probability_of_improvement(x, y, reps=300, seed=seed)
         ranked = stats._ranked(x, y)
         assert (got.value, got.low, got.high) == _rliable_interval(list(ranked), metrics.probability_of_improvement, 300, seed)
+    big_x, big_y = np.round(rng.normal(size=(3, 4000)), 1), np.round(rng.normal(size=(3, 3000)), 1)  # in chunks
+    whole = [np.mean(a[:, None] > b[None, :]) + 0.5 * np.mean(a[:, None] == b[None, :]) for a, b in zip(big_x, big_y)]
+    assert stats._improvements(big_x, big_y) == pytest.approx(whole, abs=1e-12)
     state = np.random.get_state()[1].copy()
     stats.probability_of_improvement([1.0, 2.0], [0.0, 3.0], reps=50)
     assert (np.random.get_state()[1] == state).all()  # the caller's global generator is left as it was

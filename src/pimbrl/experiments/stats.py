@@ -103,9 +103,17 @@ def _trimmed_means(samples: np.ndarray) -> np.ndarray:
 
 
 def _improvements(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """P(X > Y), ties counted half, for each row pair of ``x`` ``(R, n)`` and ``y`` ``(R, m)``: Mann-Whitney's U / nm."""
-    bx, by = x[:, :, None], y[:, None, :]
-    return ((bx > by).sum((1, 2)) + 0.5 * (bx == by).sum((1, 2))) / (x.shape[1] * y.shape[1])
+    """P(X > Y), ties counted half, for each row pair of ``x`` ``(R, n)`` and ``y`` ``(R, m)``: Mann-Whitney's U / nm.
+
+    Rows are compared in chunks of at most about ten million pairs, so that many runs need no large memory.
+    """
+    pairs = x.shape[1] * y.shape[1]
+    chunk = max(1, 10_000_000 // pairs)
+    out = np.empty(len(x))
+    for start in range(0, len(x), chunk):
+        bx, by = x[start : start + chunk, :, None], y[start : start + chunk, None, :]
+        out[start : start + chunk] = ((bx > by).sum((1, 2)) + 0.5 * (bx == by).sum((1, 2))) / pairs
+    return out
 
 
 def iqm(values: Sequence[float]) -> float:
