@@ -138,3 +138,51 @@ def test_the_readme_findings_state_every_confirmatory_verdict_of_the_results_pag
     assert readme_disagreements(row, "## Findings\n\n## Other\n- **H1a** (c-b, Burgers-v0): inconclusive\n") != []
     results = (ROOT / "docs" / "results.md").read_text()
     assert readme_disagreements(results, (ROOT / "README.md").read_text()) == [], "README Findings must state these verdicts"
+
+
+# ------------------------------------------------------------------------- provenance of the README's numbers
+#: a study's provenance line in a generated page: "- **Runs**: N; CPU: ...; commit: ..."
+PROVENANCE = re.compile(r"^- \*\*Runs\*\*: [^;]*; CPU: ([^;]*); commit: (.*)\.$", re.M)
+
+
+def unprovenanced_findings(readme: str, pages: dict[str, str]) -> list[str]:
+    """Each study the README's Findings link to whose page names no CPU model or no commit.
+
+    ``pages`` maps a page's path (``docs/results.md``, ``docs/control/NAME/report.md``) to its text; a link
+    ``docs/results.md#NAME-kind`` points at the section ``## NAME (kind)`` of that page, a link to a study's
+    ``report.md`` at that study; a link to a whole page of many studies cites none of them.
+    """
+    findings = readme.split("## Findings", 1)[-1].split("\n## ", 1)[0]
+    bad = []
+    for path, anchor in re.findall(r"\]\((docs/[^)#]+\.md)(?:#([^)]+))?\)", findings):
+        if path not in pages or (not anchor and not path.endswith("report.md")):  # a page, not one study's section
+            continue
+        text = pages[path]
+        if anchor:
+            heads = [
+                h
+                for h in re.findall(r"^## (.+)$", text, re.M)
+                if re.sub(r"[^a-z0-9 -]", "", h.lower()).replace(" ", "-") == anchor
+            ]
+            if not heads:
+                bad.append(f"{path}#{anchor}: no such section")
+                continue
+            text = text.split(f"## {heads[0]}\n", 1)[1].split("\n## ", 1)[0]
+        found = PROVENANCE.search(text)
+        if found is None or "not recorded" in found.group(1) or "not recorded" in found.group(2):
+            bad.append(f"{path}{'#' + anchor if anchor else ''}: {found.group(0) if found else 'no provenance line'}")
+    return bad
+
+
+def test_the_readme_findings_cite_only_records_with_their_cpu_model_and_commit() -> None:
+    page = "## a (exploratory)\n\n- **Runs**: 3; CPU: Intel Xeon; commit: abc.\n\n## b (exploratory)\n\n- **Runs**: 3; CPU: not recorded; commit: not recorded.\n"
+    pages = {"docs/results.md": page}
+    assert unprovenanced_findings("## Findings\n\n- x ([a](docs/results.md#a-exploratory))\n", pages) == []
+    assert unprovenanced_findings("## Findings\n\n- x ([b](docs/results.md#b-exploratory))\n", pages) != []
+    assert unprovenanced_findings("## Findings\n\n- x ([c](docs/results.md#c-exploratory))\n", pages) != []
+    assert unprovenanced_findings("## Findings\n\n## Other\n- x ([b](docs/results.md#b-exploratory))\n", pages) == []
+    pages = {
+        str(p.relative_to(ROOT)): p.read_text()
+        for p in [ROOT / "docs" / "results.md", *(ROOT / "docs" / "control").glob("*/report.md")]
+    }
+    assert unprovenanced_findings((ROOT / "README.md").read_text(), pages) == []
