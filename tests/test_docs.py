@@ -145,6 +145,10 @@ def test_the_readme_findings_state_every_confirmatory_verdict_of_the_results_pag
 PROVENANCE = re.compile(r"^- \*\*Runs\*\*: [^;]*; CPU: ([^;]*); commit: (.*)\.$", re.M)
 
 
+#: pages the Findings may link to as a whole: they hold no study's numbers of their own for a claim to rest on
+OVERVIEW_PAGES = {"docs/results.md", "docs/confirmatory.md", "docs/control.md", "docs/control/", "docs/journal/README.md"}
+
+
 def unprovenanced_findings(readme: str, pages: dict[str, str]) -> list[str]:
     """Each study the README's Findings link to whose page names no CPU model or no commit.
 
@@ -154,8 +158,11 @@ def unprovenanced_findings(readme: str, pages: dict[str, str]) -> list[str]:
     """
     findings = readme.split("## Findings", 1)[-1].split("\n## ", 1)[0]
     bad = []
-    for path, anchor in re.findall(r"\]\((docs/[^)#]+\.md)(?:#([^)]+))?\)", findings):
-        if path not in pages or (not anchor and not path.endswith("report.md")):  # a page, not one study's section
+    for path, anchor in re.findall(r"\]\((docs/[^)#]*)(?:#([^)]+))?\)", findings):
+        if not anchor and path in OVERVIEW_PAGES:  # a page about many studies or the protocol: it cites none
+            continue
+        if path not in pages:
+            bad.append(f"{path}{'#' + anchor if anchor else ''}: not a study's page or section (an overview? see OVERVIEW_PAGES)")
             continue
         text = pages[path]
         if anchor:
@@ -181,6 +188,8 @@ def test_the_readme_findings_cite_only_records_with_their_cpu_model_and_commit()
     assert unprovenanced_findings("## Findings\n\n- x ([b](docs/results.md#b-exploratory))\n", pages) != []
     assert unprovenanced_findings("## Findings\n\n- x ([c](docs/results.md#c-exploratory))\n", pages) != []
     assert unprovenanced_findings("## Findings\n\n## Other\n- x ([b](docs/results.md#b-exploratory))\n", pages) == []
+    assert unprovenanced_findings("## Findings\n\n- see [c](docs/confirmatory.md)\n", pages) == []
+    assert unprovenanced_findings("## Findings\n\n- -9.1 ([m](docs/models.md))\n", pages) != []  # a page no test reads
     pages = {
         str(p.relative_to(ROOT)): p.read_text()
         for p in [ROOT / "docs" / "results.md", *(ROOT / "docs" / "control").glob("*/report.md")]

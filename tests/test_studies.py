@@ -266,7 +266,9 @@ def test_intervals_are_reproducible_and_contain_their_estimate() -> None:
     assert math.isnan(stats.probability_of_improvement([], [1.0]).value)
 
 
-def _rliable_interval(scores: list[np.ndarray], func, reps: int, seed: int) -> tuple[float, float, float]:
+def _rliable_interval(
+    scores: list[np.ndarray], func, reps: int, seed: int, confidence: float = 0.95
+) -> tuple[float, float, float]:
     """rliable's own stratified-bootstrap estimate, the way this project called it before it was vectorised."""
     import warnings
 
@@ -281,6 +283,7 @@ def _rliable_interval(scores: list[np.ndarray], func, reps: int, seed: int) -> t
                 {"x": [s.reshape(-1, 1) for s in scores] if len(scores) > 1 else scores[0].reshape(-1, 1)},
                 lambda *a: np.array([func(*a)]),
                 reps=reps,
+                confidence_interval_size=confidence,
                 random_state=np.random.RandomState(seed),
             )
     finally:
@@ -303,14 +306,18 @@ def test_vectorised_intervals_are_rliables_to_the_last_bit() -> None:
         finite = x[np.isfinite(x)] if len(x[np.isfinite(x)]) > 1 else y
         got = stats.iqm_interval(finite, reps=300, seed=seed)
         assert (got.value, got.low, got.high) == _rliable_interval([finite], metrics.aggregate_iqm, 300, seed)
-        got = stats.mean_interval(y, reps=300, seed=seed)
-        assert (got.value, got.low, got.high) == _rliable_interval([y], np.mean, 300, seed)
+        got = stats.mean_interval(y, confidence=0.9, reps=300, seed=seed)
+        assert (got.value, got.low, got.high) == _rliable_interval([y], np.mean, 300, seed, confidence=0.9)
         got = stats.probability_of_improvement(x, y, reps=300, seed=seed)
         ranked = stats._ranked(x, y)
         assert (got.value, got.low, got.high) == _rliable_interval(list(ranked), metrics.probability_of_improvement, 300, seed)
-    big_x, big_y = np.round(rng.normal(size=(3, 4000)), 1), np.round(rng.normal(size=(3, 3000)), 1)  # in chunks
+    big_x, big_y = np.round(rng.normal(size=(7, 1500)), 1), np.round(rng.normal(size=(7, 2000)), 1)  # chunks 3, 3, 1
     whole = [np.mean(a[:, None] > b[None, :]) + 0.5 * np.mean(a[:, None] == b[None, :]) for a, b in zip(big_x, big_y)]
     assert stats._improvements(big_x, big_y) == pytest.approx(whole, abs=1e-12)
+    assert math.isnan(stats.probability_of_improvement([1.0, math.nan], [0.0, 3.0]).value)  # no number: no estimate
+    assert math.isnan(stats.iqm_interval([1.0, math.nan, 2.0, 5.0]).value)
+    with pytest.raises(ValueError, match="strictly between 0 and 1"):
+        stats.mean_interval([1.0, 2.0], confidence=1.0)
     state = np.random.get_state()[1].copy()
     stats.probability_of_improvement([1.0, 2.0], [0.0, 3.0], reps=50)
     assert (np.random.get_state()[1] == state).all()  # the caller's global generator is left as it was
@@ -349,6 +356,14 @@ def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
     assert arms["mbrl"]["thresholds"]["-800"]["median"]["median"] == 40.0
     comparison = report.stats["groups"]["pimbrl/Pendulum-v0 default"]["comparisons"]["mbrl vs mfrl"]
     assert comparison["outcome_poi"]["value"] == 1.0 and comparison["outcome_difference"]["value"] == pytest.approx(200.0)
+    assert "CPU: not recorded; commit: not recorded." in report.markdown  # no run names its machine
+    for k, run in enumerate(runs[:3]):  # three of four runs name their CPU model and commit
+        run["provenance"] = {"cpu": "Some CPU", "commit": f"{k}" * 40}
+    text = study_report(spec, record).markdown
+    assert (
+        "CPU: Some CPU (not recorded for 1 of 4 runs); commit: 0000000000, 1111111111, 2222222222 (not recorded for 1 of 4 runs)."
+        in text
+    )
 
 
 # ---------------------------------------------------------------------------------- registration
@@ -513,8 +528,16 @@ def test_status_counts_a_dpc_runs_gradient_steps(tmp_path, capsys) -> None:
         assert "| dpc | 0/2 | 1 (100/400 DPC steps) | 1 | 0 |" in text
     finally:
         writer.close()
-    (runs[1].path / "control.json").write_text("[1]")  # damaged: named, not a crash
-    assert study_progress(spec, root)[1].state == "unreadable"
+    for damaged in (
+        "[1]",
+        '{"dpc": [1]}',
+        '{"dpc": {"steps": null}}',
+        '{"dpc": {"steps": 3}, "wall_s": [2]}',
+        "{not json",
+        '{"wall_s": "1"}',
+    ):
+        (runs[1].path / "control.json").write_text(damaged)  # named, not a crash
+        assert study_progress(spec, root)[1].state == "unreadable", damaged
 
 
 @pytest.mark.slow

@@ -12,7 +12,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from ..fileio import MAX_JSON_BYTES, read_below, strict_json
 from ..training.control_run import CONTROL_FILE
@@ -79,9 +78,7 @@ def _read_progress(run: StudyRun) -> RunProgress:
     steps = int(float(rows[-1]["step"])) if rows else 0
     wall = float(rows[-1]["wall_s"]) if rows else None
     if isinstance(run.config.method, DPC):  # no evaluations: its gradient steps and wall-clock are in control.json
-        stages = _control_stages(rd)
-        steps = int((stages.get("dpc") or {}).get("steps", 0))
-        wall = float(stages["wall_s"]) if "wall_s" in stages else None
+        steps, wall = _dpc_progress(rd)
     if rd.holder() is not None:
         state = "running"
     elif payload.get("status") == "finished":
@@ -92,15 +89,23 @@ def _read_progress(run: StudyRun) -> RunProgress:
     return RunProgress(run, state, steps, wall)
 
 
-def _control_stages(rd: RunDirectory) -> dict[str, Any]:
-    """A control run's ``control.json`` (empty before its first stage); a damaged one is a :class:`ValueError`."""
+def _dpc_progress(rd: RunDirectory) -> tuple[int, float | None]:
+    """A DPC run's gradient steps and wall-clock from its ``control.json`` (0 and ``None`` before it exists).
+
+    A damaged file (not JSON, or a field of the wrong type) is a :class:`ValueError` naming it.
+    """
     path = rd.path / CONTROL_FILE
     if not path.exists():
-        return {}
+        return 0, None
     payload = strict_json(read_below(rd.path, CONTROL_FILE, MAX_JSON_BYTES), path)
-    if not isinstance(payload, dict):
-        raise ValueError(f"{path} is not a JSON object")
-    return payload
+    dpc = payload.get("dpc", {}) if isinstance(payload, dict) else None
+    steps = dpc.get("steps", 0) if isinstance(dpc, dict) else None
+    wall = payload.get("wall_s") if isinstance(payload, dict) else None
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+        raise ValueError(f"{path}: no count of DPC steps (dpc.steps) in it; delete the run's directory to restart it")
+    if wall is not None and (not isinstance(wall, (int, float)) or isinstance(wall, bool)):
+        raise ValueError(f"{path}: wall_s is not a number; delete the run's directory to restart it")
+    return steps, None if wall is None else float(wall)
 
 
 def study_progress(spec: StudySpec, root: str | Path) -> list[RunProgress]:

@@ -536,6 +536,12 @@ def _arm_entry(arm: Any) -> str:
     return _json_line(entry)
 
 
+def _not_recorded(runs: list[dict[str, Any]], key: str) -> str:
+    """`` (not recorded for k of n runs)`` where some runs' provenance lacks ``key``, else nothing."""
+    lacking = sum(1 for r in runs if not (r.get("provenance") or {}).get(key))
+    return f" (not recorded for {lacking} of {len(runs)} runs)" if lacking else ""
+
+
 def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: str, link_base: str | Path | None) -> list[str]:
     cpus = sorted({str((r.get("provenance") or {}).get("cpu")) for r in record["runs"] if r.get("provenance")})
     commits = sorted({str((r.get("provenance") or {}).get("commit"))[:10] for r in record["runs"] if r.get("provenance")})
@@ -563,6 +569,10 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
     commit = ", ".join(c for c in commits if c != "None") or (
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
+    if any(c != "None" for c in cpus):  # some runs name their CPU: say where others do not
+        cpu += _not_recorded(record["runs"], "cpu")
+    if any(c != "None" for c in commits):
+        commit += _not_recorded(record["runs"], "commit")
     copies = sum(1 for r in record["runs"] if r.get("replicate_of"))
     copied = f" ({copies} copied from a seed-free controller's first seed, checked against its second)" if copies else ""
     lines.append(f"- **Runs**: {len(record['runs'])}{copied}; CPU: {cpu}; commit: {commit}.")

@@ -89,6 +89,8 @@ def _resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.ndarray]:
 
 def _percentile_interval(results: np.ndarray, confidence: float) -> tuple[float, float]:
     """The percentile interval of bootstrap ``results`` (arch's ``conf_int(method="percentile")``)."""
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"a confidence level must lie strictly between 0 and 1, got {confidence}")
     alpha = (1.0 - confidence) / 2
     low, high = np.percentile(results, [100 * alpha, 100 * (1.0 - alpha)])
     return float(low), float(high)
@@ -128,8 +130,8 @@ def _over_runs(
 ) -> Interval:
     """``func`` (of runs along axis 1) over the runs' ``values`` with its bootstrap interval (one run: no width)."""
     x = np.array([float(v) for v in values])
-    if not len(x):
-        return Interval(math.nan, math.nan, math.nan, 0)
+    if not len(x) or np.isnan(x).any():  # no runs, or a run without a number: no estimate (as rliable gave)
+        return Interval(math.nan, math.nan, math.nan, len(x))
     if len(x) == 1:
         return Interval(float(x[0]), float(x[0]), float(x[0]), 1)
     (indices,) = _resamples([len(x)], reps, seed)
@@ -158,6 +160,8 @@ def probability_of_improvement(
     y = np.asarray(than, dtype=float)
     if len(x) == 0 or len(y) == 0:
         return Interval(math.nan, math.nan, math.nan, 0)
+    if np.isnan(x).any() or np.isnan(y).any():  # a run without a number: no estimate (as rliable gave)
+        return Interval(math.nan, math.nan, math.nan, min(len(x), len(y)))
     x, y = _ranked(x, y)
     ix, iy = _resamples([len(x), len(y)], reps, seed)
     low, high = _percentile_interval(_improvements(x[ix], y[iy]), confidence)
