@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import pytest
 
 from pimbrl.config import ConfigError
 from pimbrl.training import create_run, resolve_config, train
-from pimbrl.training.rundir import cpu_model, source_commit
+from pimbrl.training.rundir import cpu_identity, cpu_model, source_commit
 
 from .settings import ENV_IDS, for_method
 
@@ -27,6 +28,11 @@ def test_the_cpu_is_named_by_its_model_and_the_code_by_its_commit() -> None:
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.exists() and "model name" in cpuinfo.read_text():
         assert cpu in cpuinfo.read_text()
+    identity = cpu_identity()
+    if cpuinfo.exists() and "cpu family" in cpuinfo.read_text():  # a masked model name is told apart by these
+        family = re.search(r"^cpu family\s*:\s*(\d+)", cpuinfo.read_text(), re.M)
+        assert identity is not None and family is not None and f" family {family.group(1)} model " in identity
+        assert re.fullmatch(r"\S+ family \d+ model \d+ stepping \d+, flags [0-9a-f]{8}", identity)
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     if head.returncode == 0:  # a checkout: the commit is read from .git without running git
         assert source_commit() == head.stdout.strip()
@@ -43,6 +49,7 @@ def _run(tmp_path, name: str, method: str, **extra) -> tuple[dict, dict]:
 def test_a_run_records_where_it_ran_and_what_its_method_used(tmp_path) -> None:
     payload, mf = _run(tmp_path, "mf", "mfrl")
     assert payload["provenance"]["cpu"] == cpu_model() and payload["provenance"]["cores"] >= 1
+    assert payload["provenance"]["cpu_id"] == cpu_identity()
     assert payload["provenance"]["commit"] == source_commit()
     assert mf["real_transitions"] == 300 and mf["imagined_transitions"] == mf["scheme_transitions"] == 0
     _, mb = _run(tmp_path, "mb", "mbrl")

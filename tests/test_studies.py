@@ -359,11 +359,12 @@ def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
     assert "CPU: not recorded; commit: not recorded." in report.markdown  # no run names its machine
     for k, run in enumerate(runs[:3]):  # three of four runs name their CPU model and commit
         run["provenance"] = {"cpu": "Some CPU", "commit": f"{k}" * 40}
+    runs[0]["provenance"]["cpu_id"] = "GenuineIntel family 6 model 1 stepping 2, flags 0badf00d"
     text = study_report(spec, record).markdown
     assert (
-        "CPU: Some CPU (not recorded for 1 of 4 runs); commit: 0000000000, 1111111111, 2222222222 (not recorded for 1 of 4 runs)."
-        in text
-    )
+        "CPU: Some CPU (GenuineIntel family 6 model 1 stepping 2, flags 0badf00d) (not recorded for 1 of 4 runs); "
+        "commit: 0000000000, 1111111111, 2222222222 (not recorded for 1 of 4 runs)."
+    ) in text
 
 
 # ---------------------------------------------------------------------------------- registration

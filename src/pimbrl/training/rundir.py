@@ -208,6 +208,36 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
+def cpu_identity() -> str | None:
+    """The CPU beyond its model name: vendor, family, model and stepping, and a digest of its feature flags.
+
+    A virtual machine may mask the model name (``Intel(R) Xeon(R) Processor``); the family, model, stepping
+    and the instruction-set flags (which decide the vector kernels NumPy, torch and Numba run) tell such
+    machines apart. ``None`` where ``/proc/cpuinfo`` is not there.
+    """
+    import hashlib
+
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                key = key.strip()
+                if key in ("vendor_id", "cpu family", "model", "stepping", "flags") and key not in fields:
+                    fields[key] = value.strip()
+                if not line.strip() and fields:  # the first processor's block is enough
+                    break
+    except OSError:
+        return None
+    if not fields:
+        return None
+    flags = hashlib.sha256(" ".join(sorted(fields.get("flags", "").split())).encode()).hexdigest()[:8]
+    return (
+        f"{fields.get('vendor_id', '?')} family {fields.get('cpu family', '?')} model {fields.get('model', '?')} "
+        f"stepping {fields.get('stepping', '?')}, flags {flags}"
+    )
+
+
 def source_commit() -> str | None:
     """The git commit of the source tree this pimbrl was loaded from (``None`` for an installed package).
 
@@ -250,9 +280,9 @@ def source_commit() -> str | None:
 
 
 def provenance() -> dict[str, Any]:
-    """Where a run ran: the CPU model, the cores this process may use, the commit of the code (in ``config.json``)."""
+    """Where a run ran: the CPU model (and :func:`cpu_identity`), the cores this process may use, the commit of the code."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cpu": cpu_model(), "cores": cores, "commit": source_commit()}
+    return {"cpu": cpu_model(), "cpu_id": cpu_identity(), "cores": cores, "commit": source_commit()}
 
 
 def package_versions() -> dict[str, str]:
