@@ -13,8 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..fileio import MAX_JSON_BYTES, read_below, strict_json
-from ..training.control_run import CONTROL_FILE
+from ..training.control_run import CONTROL_FILE, read_stages
 from ..training.methods import DPC
 from ..training.rundir import RunDirectory
 from .engine import StudyRun, plan_study
@@ -74,11 +73,12 @@ def _read_progress(run: StudyRun) -> RunProgress:
         payload = rd.read_config()
     except FileNotFoundError:
         return RunProgress(run, "not started", 0, None)
-    rows = rd.evaluations.read()
-    steps = int(float(rows[-1]["step"])) if rows else 0
-    wall = float(rows[-1]["wall_s"]) if rows else None
-    if isinstance(run.config.method, DPC):  # no evaluations: its gradient steps and wall-clock are in control.json
+    if isinstance(run.config.method, DPC):  # no evaluations while it trains: its steps are in control.json
         steps, wall = _dpc_progress(rd)
+    else:
+        rows = rd.evaluations.read()
+        steps = int(float(rows[-1]["step"])) if rows else 0
+        wall = float(rows[-1]["wall_s"]) if rows else None
     if rd.holder() is not None:
         state = "running"
     elif payload.get("status") == "finished":
@@ -94,13 +94,13 @@ def _dpc_progress(rd: RunDirectory) -> tuple[int, float | None]:
 
     A damaged file (not JSON, or a field of the wrong type) is a :class:`ValueError` naming it.
     """
-    path = rd.path / CONTROL_FILE
-    if not path.exists():
+    payload = read_stages(rd)
+    if payload is None:
         return 0, None
-    payload = strict_json(read_below(rd.path, CONTROL_FILE, MAX_JSON_BYTES), path)
-    dpc = payload.get("dpc", {}) if isinstance(payload, dict) else None
+    path = rd.path / CONTROL_FILE
+    dpc = payload.get("dpc", {})
     steps = dpc.get("steps", 0) if isinstance(dpc, dict) else None
-    wall = payload.get("wall_s") if isinstance(payload, dict) else None
+    wall = payload.get("wall_s")
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
         raise ValueError(f"{path}: no count of DPC steps (dpc.steps) in it; delete the run's directory to restart it")
     if wall is not None and (not isinstance(wall, (int, float)) or isinstance(wall, bool)):

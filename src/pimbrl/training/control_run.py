@@ -43,10 +43,21 @@ from .methods import DPC, MPC, Feedback
 from .rundir import RunDirectory, steps_to_threshold
 from .summary import RunSummary
 
-__all__ = ["CONTROL_FILE", "ControlRun"]
+__all__ = ["CONTROL_FILE", "ControlRun", "read_stages"]
 
 #: the stage file of a control run
 CONTROL_FILE = "control.json"
+
+
+def read_stages(run_dir: RunDirectory) -> dict[str, Any] | None:
+    """A control run's ``control.json`` (``None`` before its first stage); a damaged one is a :class:`ValueError`."""
+    path = run_dir.path / CONTROL_FILE
+    if not path.exists():
+        return None
+    payload = strict_json(read_below(run_dir.path, CONTROL_FILE, MAX_JSON_BYTES), path)
+    if not isinstance(payload, dict):
+        raise ValueError(f"{path} is not a JSON object; delete it to restart the run")
+    return payload
 
 
 @dataclass
@@ -83,12 +94,9 @@ class ControlRun:
 
     def load(self) -> None:
         """The stages already done, from ``control.json`` (none where it is missing)."""
-        path = self.run_dir.path / CONTROL_FILE
-        if path.exists():
-            payload = strict_json(read_below(self.run_dir.path, CONTROL_FILE, MAX_JSON_BYTES), path)
-            if not isinstance(payload, dict):
-                raise ValueError(f"{path} is not a JSON object; delete it to restart the run")
-            self.state = payload
+        stages = read_stages(self.run_dir)
+        if stages is not None:
+            self.state = stages
 
     def _save(self) -> None:
         self.state["wall_s"] = self.wall_s
