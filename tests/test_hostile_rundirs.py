@@ -192,6 +192,8 @@ def test_a_run_of_an_unregistered_environment_is_a_one_line_error(run_copy: Path
         (lambda p: p.__setitem__("summary", "fast"), "summary"),
         (lambda p: p.__setitem__("status", 3), "status"),
         (lambda p: p.__setitem__("command", ["x"]), "command"),
+        (lambda p: p.__setitem__("replicate_of", {"probe": "seed0"}), "replicate_of"),  # no source named
+        (lambda p: p.__setitem__("replicate_of", "seed0"), "replicate_of"),
     ],
 )
 @pytest.mark.parametrize("command", ["eval", "resume", "compare"])

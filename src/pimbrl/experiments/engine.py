@@ -29,7 +29,7 @@ from typing import Any
 from ..config import ConfigError
 from ..fileio import atomic_write_bytes, check_below
 from ..training.config import TrainConfig, applicable_overrides, config_to_dict, resolve_config, run_names, typed_overrides
-from ..training.rundir import RunDirectory, cpu_model, provenance, source_commit
+from ..training.rundir import RunDirectory, provenance
 from .runner import RunSpec, check_reuse, lock_comparison, run_all
 from .spec import StudySpec, safe_component
 
@@ -390,13 +390,9 @@ def _run_entry(run: StudyRun, root: Path, payload: dict[str, Any]) -> dict[str, 
 
 
 def _replica_source(payload: dict[str, Any]) -> str | None:
-    """The run a copied seed-free run was copied from (``replicate_of`` in its config.json), else ``None``."""
+    """The run a copied seed-free run was copied from, else ``None`` (``read_config`` checked its form)."""
     replica = payload.get("replicate_of")
-    if replica is None:
-        return None
-    if not isinstance(replica, dict) or not isinstance(replica.get("source"), str):
-        raise ValueError(f"config.json: replicate_of must be an object naming its source, got {str(replica)[:80]!r}")
-    return str(replica["source"])
+    return None if replica is None else replica["source"]
 
 
 def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) -> dict[str, Any]:
@@ -428,7 +424,7 @@ def collect_record(spec: StudySpec, runs: Sequence[StudyRun], root: str | Path) 
         "spec_sha256": spec.sha256,
         "spec": spec.text,
         "registration": read_registration(root),
-        "provenance": {**provenance(), "cpu": cpu_model(), "commit": source_commit()},
+        "provenance": provenance(),
         "collected_unix": time.time(),
         "thresholds": {s: study_thresholds(spec, s) for s in dict.fromkeys(r.system for r in runs)},
         "runs": entries,

@@ -191,6 +191,23 @@ def wall_s_to_threshold(evaluations: list[dict[str, Any]], threshold: float | No
     return next((float(r["wall_s"]) for r in evaluations if float(r["return_mean"]) >= threshold), None)
 
 
+def _first_cpu_block() -> dict[str, str]:
+    """The first processor's fields in ``/proc/cpuinfo`` (``{}`` where there is no such file)."""
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if not line.strip():
+                    if fields:  # the first processor's block is enough
+                        break
+                    continue
+                key, _, value = line.partition(":")
+                fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        return {}
+    return fields
+
+
 def cpu_model() -> str:
     """The CPU's model name (``/proc/cpuinfo``'s ``model name``; else the platform's processor or machine).
 
@@ -198,14 +215,7 @@ def cpu_model() -> str:
     """
     import platform
 
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown"
+    return _first_cpu_block().get("model name") or platform.processor() or platform.machine() or "unknown"
 
 
 def cpu_identity() -> str | None:
@@ -217,19 +227,8 @@ def cpu_identity() -> str | None:
     """
     import hashlib
 
-    fields: dict[str, str] = {}
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                key, _, value = line.partition(":")
-                key = key.strip()
-                if key in ("vendor_id", "cpu family", "model", "stepping", "flags") and key not in fields:
-                    fields[key] = value.strip()
-                if not line.strip() and fields:  # the first processor's block is enough
-                    break
-    except OSError:
-        return None
-    if not fields:
+    fields = _first_cpu_block()
+    if not any(k in fields for k in ("vendor_id", "cpu family", "model", "stepping", "flags")):
         return None
     flags = hashlib.sha256(" ".join(sorted(fields.get("flags", "").split())).encode()).hexdigest()[:8]
     return (
@@ -918,9 +917,9 @@ _TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("versions", _string_map, "an object of strings (package versions)"),
     ("summary", _summary, "an object (with a finite wall_s, if any), or null"),
     ("command", lambda v: isinstance(v, str), "a string"),
-    ("system", lambda v: isinstance(v, dict) and all(isinstance(x, str) for x in v.values()), "an object of strings"),
+    ("system", _string_map, "an object of strings"),
     # a seed-free controller's copy (pimbrl.experiments.replicas): its source and the probe it was checked against
-    ("replicate_of", lambda v: isinstance(v, dict) and all(isinstance(x, str) for x in v.values()), "an object of strings"),
+    ("replicate_of", lambda v: _string_map(v) and "source" in v, "an object of strings naming its source"),
 )
 
 
