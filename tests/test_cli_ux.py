@@ -375,6 +375,8 @@ def test_compare_status_line_reads_the_run_directory(tmp_path) -> None:
     (spec.path / "metrics.csv").write_text("step,wall_s,steps_per_s\n1000,9.0,111.2\n")
     (spec.path / "episodes.csv").write_text("step,episode,return,length\n1000,5,-900,200\n1200,6,-700,200\n")
     assert child_status(spec) == "mfrl seed 0: 1,200/2,000 steps  test return -800.25  111 steps/s"
+    tuning = plan_runs("pimbrl/Pendulum-v0", ["mfrl"], [0], tmp_path, {"total_steps": 2000, "eval_protocol": "validation"})[0]
+    assert child_status(tuning) == "mfrl seed 0: 1,200/2,000 steps  validation return -800.25  111 steps/s"
 
 
 TINY_COMPARE = ["--warmup-steps", "100", "--update-after", "100", "--eval-every", "100", "--eval-episodes", "2",
@@ -406,3 +408,11 @@ def test_agent_names_are_the_agents() -> None:
     from pimbrl.agents import AGENT_NAMES, AGENTS
 
     assert tuple(AGENTS) == AGENT_NAMES
+
+
+@pytest.mark.parametrize("protocol", ["test", "validation"])
+def test_train_s_summary_names_the_draws_its_evaluations_played(protocol: str, tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    assert main(["train", "pendulum", "--run-dir", str(run), *QUICK, "--eval-protocol", protocol]) == 0
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert f"final {protocol} return -" in summary and summary.startswith(str(run))

@@ -768,8 +768,31 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
     best = load_presets(repo / "src" / "pimbrl" / "systems" / "burgers.yaml")[1]["best"]
     assert recipe["methods"] == {k: dict(v) for k, v in best.methods.items()}
     assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}
-    confirmatory = load_spec(repo / "benchmarks" / "confirmatory" / "confirmatory-burgers.yaml")
-    for arm in confirmatory.arms:  # the registered arms are the report's entries
+
+
+_CONFIRMATORY_SPECS = sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "confirmatory").glob("confirmatory-*.yaml"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", _CONFIRMATORY_SPECS, ids=[p.stem for p in _CONFIRMATORY_SPECS])
+def test_every_registered_arm_is_its_tuning_report_s_entry(path: Path) -> None:
+    """confirmatory-X's arms are tune-X's choices, entry for entry, as its report writes them."""
+    import dataclasses
+
+    from pimbrl.config import load_yaml
+
+    repo = Path(__file__).resolve().parents[1]
+    tuning = repo / "benchmarks" / "pending" / path.name.replace("confirmatory-", "tune-", 1)
+    assert tuning.is_file(), f"{path.name} has no tuning study {tuning.name}"
+    spec = dataclasses.replace(load_spec(tuning), reps=200)
+    report = study_report(spec, load_record(spec))
+    entries = load_yaml(report.markdown.split("```yaml\n")[1].split("```")[0])
+    confirmatory = load_spec(path)
+    assert {arm.name for arm in confirmatory.arms} <= set(entries), path.name
+    for key, value in spec.overrides.items():  # the system as tuned (a wrong prior included), judged on holdout
+        if key != "eval_protocol":
+            assert confirmatory.overrides.get(key) == value, f"{path.name}: {key}"
+    for arm in confirmatory.arms:
         entry = entries[arm.name]
         assert (entry["method"], entry.get("match_updates", False)) == (arm.method, arm.match_updates), arm.name
         assert {k: tuple(v) if isinstance(v, list) else v for k, v in entry["overrides"].items()} == arm.overrides, arm.name

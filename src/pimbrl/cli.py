@@ -189,15 +189,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     print(f"run directory: {run_dir}", file=sys.stderr)
     run = create_run(cfg, run_dir, progress=not args.quiet, command=" ".join(sys.argv))
-    _print_summary(run_dir, _train(args, run))
+    _print_summary(run_dir, _train(args, run), run.cfg.eval_protocol)
     return 0
 
 
-def _print_summary(run_dir: str, summary) -> None:
+def _print_summary(run_dir: str, summary, protocol: str) -> None:
+    """The run's one-line summary; its evaluations' draws named (``test``, or a tuning run's ``validation``)."""
     final = "-" if summary.final_return_mean is None else f"{summary.final_return_mean:.3f}"
     reached = "not reached" if summary.steps_to_threshold is None else f"{summary.steps_to_threshold:,d} steps"
     print(
-        f"{run_dir}: {summary.steps:,d} steps, {summary.updates:,d} updates, final test return {final}, "
+        f"{run_dir}: {summary.steps:,d} steps, {summary.updates:,d} updates, final {protocol} return {final}, "
         f"threshold {reached}, {summary.wall_s:.1f} s"
     )
 
@@ -216,7 +217,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         print(f"{args.run_dir} has already finished ({run.t:,d} steps); nothing to do")
         return 0
     print(f"resuming {args.run_dir} at step {run.t:,d}", file=sys.stderr)
-    _print_summary(args.run_dir, _train(args, run))
+    _print_summary(args.run_dir, _train(args, run), run.cfg.eval_protocol)
     return 0
 
 

@@ -207,7 +207,8 @@ def _number(row: dict[str, str] | None, key: str) -> float | None:
 def child_status(spec: RunSpec) -> str:
     """One status line of a running child, read from its run directory.
 
-    ``"pimbrl seed 0: 12,400/200,000 steps  test return -63.20  41 steps/s"`` (what is known so far).
+    ``"pimbrl seed 0: 12,400/200,000 steps  test return -63.20  41 steps/s"`` (what is known so far; a
+    tuning run's evaluations say ``validation return``).
     """
     head = f"{spec.label} seed {spec.seed}: "
     evaluation = _last_row(spec.path / "evaluations.csv")
@@ -217,9 +218,9 @@ def child_status(spec: RunSpec) -> str:
     if not steps:
         return head + "starting"
     parts = [f"{int(max(steps)):,d}/{spec.config.total_steps:,d} steps"]
-    test = _number(evaluation, "return_mean")
-    if test is not None:
-        parts.append(f"test return {test:.2f}")
+    mean = _number(evaluation, "return_mean")
+    if mean is not None:  # a tuning run's evaluations play the validation draws, not the test pool
+        parts.append(f"{spec.config.eval_protocol} return {mean:.2f}")
     sps = _number(metrics, "steps_per_s")
     if sps is not None:
         parts.append(f"{sps:,.0f} steps/s")
