@@ -790,7 +790,7 @@ def test_every_registered_arm_is_its_tuning_report_s_entry(path: Path) -> None:
     confirmatory = load_spec(path)
     assert {arm.name for arm in confirmatory.arms} <= set(entries), path.name
     for key, value in spec.overrides.items():  # the system as tuned (a wrong prior included), judged on holdout
-        if key != "eval_protocol":
+        if key not in ("eval_protocol", "total_steps"):  # the budget may differ (KS tunes shorter runs)
             assert confirmatory.overrides.get(key) == value, f"{path.name}: {key}"
     for arm in confirmatory.arms:
         entry = entries[arm.name]

@@ -497,6 +497,31 @@ def _study_status(spec: Any, root: Path, jobs: int) -> None:
     print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
 
 
+def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
+    """`pimbrl study draft TUNING`: the confirmatory spec its record gives, to --out (never over a file) or stdout."""
+    from .experiments.draft import draft_confirmatory
+    from .experiments.report import load_record
+    from .fileio import atomic_write_bytes
+
+    out = Path(args.out) if args.out else Path(spec.path or ".").parent / "draft.yaml"
+    if args.out and out.exists():
+        raise FileExistsError(
+            f"{out} exists: a registered spec is never rewritten (give another --out, or remove an unregistered draft)"
+        )
+    record = load_record(spec, root if spec.record is None or spec.record.format == "study" else None)
+    text = draft_confirmatory(
+        spec, record, out, seeds=args.seeds, other_seeds=args.other_seeds, total_steps=args.total_steps,
+        holdout_episodes=args.holdout_episodes,
+    )  # fmt: skip
+    if not args.out:
+        print(text, end="")
+        return 0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out, text.encode())
+    print(f"wrote {out}: review it, then commit it alone before its first run (`pimbrl study run {out}`)")
+    return 0
+
+
 def _cmd_study(args: argparse.Namespace) -> int:
     from .experiments.engine import plan_study, run_study
     from .experiments.report import load_record, study_report, write_pages
@@ -535,6 +560,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
     if args.action == "status":
         _study_status(spec, root, args.jobs)
         return 0
+    if args.action == "draft":
+        return _study_draft(args, spec, root)
     if args.action == "run":
         _check_run_dir(str(root))
         record = run_study(
@@ -783,9 +810,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="plan SPEC: list its runs. run SPEC: train what is missing (local processes or Ray) and write its "
         "record. status SPEC: which runs have finished, run or wait, and the compute left (no returns). "
         "report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
-        "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. Format: pimbrl.experiments.spec.",
+        "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. draft TUNING: the "
+        "confirmatory spec a finished tuning study gives by the rules of docs/confirmatory.md (arms, seeds, "
+        "hypotheses, plan), to review and register. Format: pimbrl.experiments.spec.",
     )
-    st.add_argument("action", choices=("plan", "run", "status", "report"))
+    st.add_argument("action", choices=("plan", "run", "status", "report", "draft"))
     st.add_argument("specs", nargs="+", metavar="SPEC", help="study spec (YAML)")
     st.add_argument("--run-dir", default=None, help="the study's directory (default: runs/<study name>)")
     st.add_argument(
@@ -795,7 +824,17 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
     st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")
     _add_no_replicas(st, "run: ")
-    st.add_argument("--out", default=None, help="report: directory of report.md and figures (default: the run directory)")
+    st.add_argument(
+        "--out",
+        default=None,
+        help="report: directory of report.md and figures (default: the run directory); draft: the spec file (default: stdout)",
+    )
+    st.add_argument("--seeds", type=int, default=10, help="draft: seeds per arm, from 100 (with --other-seeds: the main arms')")
+    st.add_argument(
+        "--other-seeds", type=int, default=None, help="draft: seeds of the arms besides the protocol's main ones (KS: 3)"
+    )
+    st.add_argument("--total-steps", type=int, default=None, help="draft: real steps per run, where not the tuning runs' (KS)")
+    st.add_argument("--holdout-episodes", type=int, default=100, help="draft: holdout states each run's final policy plays")
     st.add_argument("--pages", default=None, metavar="DOCS", help="report: write DOCS/results.md and DOCS/reproduce.md")
     _add_import(st)
     st.set_defaults(func=_cmd_study)

@@ -1,0 +1,297 @@
+"""A confirmatory spec drafted from a finished tuning study, by the rules of docs/confirmatory.md.
+
+``pimbrl study draft benchmarks/pending/tune-X.yaml --out benchmarks/confirmatory/confirmatory-X.yaml`` reads
+the tuning study's record and writes a spec that is ready to review and register (commit it alone, before
+its first run):
+
+* the arms: each method's choice (the highest validation IQM), entry for entry as the tuning report writes
+  them, with every candidate's IQM in a comment, and the tuning study's own overrides (a wrong prior, the
+  budget) besides ``eval_protocol``;
+* fresh seeds (100 and up), ``holdout_episodes`` and ``outcome: holdout``; the tuning study's thresholds;
+* the hypotheses the protocol states for the families the tuning study has: H1a/H1b (PiMBRL against
+  MBRL), H3 (known-scheme Dyna against the tuned model-free arm), H4a/H4b (MPC, DPC against the best RL arm
+  by rule) with H4a-ARM/H4b-ARM against every other RL arm (the amendment after confirmatory-burgers), and
+  under a wrong prior (``model.prior`` among the overrides) H2a/H2b (the identified scheme against MBRL and
+  against the wrong scheme held fixed) in place of H3 and H4;
+* the compute plan from the tuning runs' wall-clocks (a seed-free controller trains two seeds).
+
+Nothing is chosen here that the protocol does not choose: a setting the draft cannot derive is an error,
+and the reviewer edits the text before it is committed, never after.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..config import ConfigError, load_yaml
+from ..training.methods import CONTROL_METHODS
+from .report import _json_line, study_report
+from .spec import StudySpec, parse_spec
+
+__all__ = ["FIRST_SEED", "draft_confirmatory"]
+
+#: the first seed of a confirmatory run (no tuning run used 100 or above)
+FIRST_SEED = 100
+
+
+@dataclass(frozen=True)
+class _Family:
+    """One tuned method family: its chosen arm, that arm's method and validation IQM, all candidates' IQMs."""
+
+    name: str
+    arm: Any
+    iqm: float
+    candidates: dict[str, float]
+
+    @property
+    def method(self) -> str:
+        return str(self.arm.method)
+
+
+def draft_confirmatory(
+    spec: StudySpec,
+    record: dict[str, Any],
+    out: Path,
+    *,
+    seeds: int = 10,
+    other_seeds: int | None = None,
+    holdout_episodes: int = 100,
+    total_steps: int | None = None,
+) -> str:
+    """The YAML text of the confirmatory spec drafted from tuning study ``spec`` and its ``record``.
+
+    Args:
+        spec: the tuning study (``tuning:``), every candidate finished.
+        record: its record (:func:`~pimbrl.experiments.report.load_record`).
+        out: where the spec will be written (its ``imports`` and ``record`` paths are relative to its folder).
+        seeds: seeds of every arm (from :data:`FIRST_SEED`), or of the protocol's main arms where
+            ``other_seeds`` is given (the tuned model-free arm, PiMBRL, known-scheme Dyna, the best
+            controller; under a wrong prior MBRL, the wrong and the identified scheme).
+        other_seeds: seeds of the other arms (KS: 5 and 3), or ``None`` for ``seeds`` everywhere.
+        holdout_episodes: the holdout states each run's final policy plays once (its outcome).
+        total_steps: the runs' real steps where they differ from the tuning runs' (KS tunes shorter runs).
+    """
+    if not spec.tuning:
+        raise ConfigError(f"{spec.name} is not a tuning study (no `tuning:`): a confirmatory draft needs each method's choice")
+    if len(spec.systems) != 1 or spec.grid:
+        raise ConfigError(f"{spec.name} tunes {len(spec.systems)} systems or a grid: a draft takes one system and no grid")
+    report = study_report(spec, record)
+    groups = report.stats["groups"]
+    if len(groups) != 1:
+        raise ConfigError(f"{spec.name}: its record has {len(groups)} groups of finished runs, a draft needs exactly one")
+    group = next(iter(groups.values()))
+    missing = [f for f, c in group.get("tuning", {}).items() if not c["chosen"]]
+    if missing or "tuning_rules" not in group:
+        raise ConfigError(
+            f"{spec.name}: no choice yet for {', '.join(missing) or 'every method'} (runs missing or unfinished): "
+            f"finish it first (`pimbrl study status`)"
+        )
+    families = [
+        _Family(name, spec.arm(c["chosen"]), float(c["iqm"][c["chosen"]]), {a: float(v) for a, v in c["iqm"].items()})
+        for name, c in group["tuning"].items()
+    ]
+    rules: dict[str, str | None] = group["tuning_rules"]
+    system = spec.systems[0]
+    thresholds = [float(t) for t in (record.get("thresholds") or {}).get(system) or spec.thresholds]
+    partial = "model.prior" in spec.overrides
+    hypotheses = _hypotheses(families, rules, thresholds[0] if thresholds else None, partial)
+    if not hypotheses:
+        raise ConfigError(f"{spec.name}: its methods give none of the protocol's hypotheses (docs/confirmatory.md)")
+    main = _main_arms(families, rules, partial)
+    seed_list = list(range(FIRST_SEED, FIRST_SEED + seeds))
+    other_list = None if other_seeds is None else list(range(FIRST_SEED, FIRST_SEED + other_seeds))
+    overrides = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
+    tuned_steps = _tuned_steps(spec)
+    if total_steps is not None:
+        overrides["total_steps"] = total_steps
+    overrides["holdout_episodes"] = holdout_episodes
+    name = spec.name.replace("tune-", "confirmatory-", 1) if spec.name.startswith("tune-") else f"confirmatory-{spec.name}"
+    folder = out.resolve().parent
+
+    lines = [
+        "# Pre-registered (docs/confirmatory.md): committed before its first run, never edited after it.",
+        f"# Drafted by `pimbrl study draft` from {spec.name}'s record; reviewed before it was committed.",
+        f"name: {name}",
+        "kind: confirmatory",
+        "question: >-",
+        *_wrapped(_question(spec, system, families, hypotheses, holdout_episodes), "  "),
+        f"systems: [{spec.systems[0]}]",
+        f"preset: {spec.preset or 'default'}",
+        f"seeds: {_json_line(seed_list)}",
+    ]
+    if spec.imports:
+        lines.append(f"imports: {_json_line([_relative(i, folder) for i in spec.imports])}")
+    lines += ["methods:", f"  # {spec.name}'s choices: the highest IQM of the {spec.outcome} validation return over its seeds"]
+    for fam in families:
+        others = ", ".join(f"{a} {v:.4g}" for a, v in fam.candidates.items() if a != fam.arm.name)
+        tags = [what for what, f in rules.items() if f == fam.name]
+        lines.append(f"  # {fam.name}: {fam.arm.name} {fam.iqm:.4g} ({others})" + (f"; the {' and '.join(tags)}" if tags else ""))
+        entry: dict[str, Any] = {"method": fam.method}
+        if fam.arm.match_updates:
+            entry["match_updates"] = True
+        if fam.arm.overrides:
+            entry["overrides"] = fam.arm.overrides
+        if other_list is not None and fam.name not in main:
+            entry["seeds"] = other_list
+        lines.append(f"  {fam.name}: {_json_line(entry)}")
+    lines += [f"overrides: {_json_line(overrides)}", "outcome: holdout"]
+    if thresholds:
+        lines.append(f"thresholds: {_json_line(thresholds)}")
+    lines.append(f"statistics: {_json_line({'confidence': spec.confidence, 'reps': spec.reps})}")
+    pairs = list(dict.fromkeys((h["better"], h["than"]) for h in hypotheses.values()))
+    by_method = {f.method: f.name for f in families}
+    if "mpc" in by_method and "feedback" in by_method:
+        pairs.append((by_method["mpc"], by_method["feedback"]))
+    lines.append("comparisons:")
+    lines += [f"  - [{a}, {b}]" for a, b in pairs]
+    lines.append("hypotheses:")
+    lines += [f"  {hid}: {_json_line(h)}" for hid, h in hypotheses.items()]
+    if spec.record is not None:
+        record_path = _relative(str(spec.record.path.parent / f"{name}.json"), folder)
+    else:
+        record_path = f"../results/{name}.json"
+    lines.append(f"record: {{path: {record_path}, format: study}}")
+    draft = _parsed(lines, out, folder)  # a draft that does not read is a bug
+    plan = _plan(spec, group, draft, families, total_steps, tuned_steps, holdout_episodes)
+    lines[-1:-1] = ["plan: >-", *_wrapped(plan, "  ")]
+    _parsed(lines, out, folder)
+    return "\n".join(lines) + "\n"
+
+
+def _tuned_steps(spec: StudySpec) -> int:
+    """The real steps of the tuning runs (their resolved ``total_steps``)."""
+    from .engine import plan_study
+
+    return int(plan_study(spec, Path(spec.name))[0].config.total_steps)
+
+
+def _parsed(lines: list[str], out: Path, folder: Path) -> StudySpec:
+    text = "\n".join(lines) + "\n"
+    return parse_spec(load_yaml(text), where=str(out), base=folder, text=text)
+
+
+def _hypotheses(
+    families: list[_Family], rules: dict[str, str | None], threshold: float | None, partial: bool
+) -> dict[str, dict[str, Any]]:
+    """The protocol's hypotheses (docs/confirmatory.md) among ``families``, in its order."""
+    of = {f.method: f.name for f in families}
+    steps = {} if threshold is None else {"metric": "steps_to_threshold", "threshold": threshold}
+    t = "" if threshold is None else f"{threshold:g}"
+    out: dict[str, dict[str, Any]] = {}
+    if "pimbrl" in of and "mbrl" in of:
+        if steps:
+            out["H1a"] = {"claim": f"PiMBRL reaches {t} in fewer real steps than MBRL", "better": of["pimbrl"],
+                          "than": of["mbrl"], **steps}  # fmt: skip
+        out["H1b"] = {
+            "claim": "PiMBRL's final policy beats MBRL's on the holdout states",
+            "better": of["pimbrl"],
+            "than": of["mbrl"],
+        }
+    if partial:
+        identified = of.get("identified-scheme")
+        if identified and "mbrl" in of:
+            out["H2a"] = {"claim": "Dyna with the identified scheme beats data-only MBRL on the holdout states",
+                          "better": identified, "than": of["mbrl"]}  # fmt: skip
+        if identified and "known-scheme" in of:
+            out["H2b"] = {"claim": "Dyna with the identified scheme beats the wrong prior's scheme held fixed on the "
+                          "holdout states", "better": identified, "than": of["known-scheme"]}  # fmt: skip
+        return out
+    model_free = rules.get("tuned model-free arm")
+    if "known-scheme" in of and model_free and steps:
+        out["H3"] = {"claim": f"Known-scheme Dyna reaches {t} in fewer real steps than the tuned model-free arm",
+                     "better": of["known-scheme"], "than": model_free, **steps}  # fmt: skip
+    best = rules.get("best RL arm")
+    rl = [f.name for f in families if f.method not in CONTROL_METHODS]
+    for hid, method, what in (
+        ("H4a", "mpc", "MPC with the known equation"),
+        ("H4b", "dpc", "DPC trained through the known equation"),
+    ):
+        if method not in of or not best:
+            continue
+        out[hid] = {"claim": f"{what} beats the best RL arm ({best}) on the holdout states", "better": of[method], "than": best}
+        for arm in rl:
+            if arm != best:
+                out[f"{hid}-{arm}"] = {"claim": f"{what} beats {arm} on the holdout states", "better": of[method], "than": arm}
+    return out
+
+
+def _main_arms(families: list[_Family], rules: dict[str, str | None], partial: bool) -> set[str]:
+    """The arms the protocol gives the full seeds where others get fewer (KS)."""
+    of = {f.method: f.name for f in families}
+    if partial:
+        return {of[m] for m in ("mbrl", "known-scheme", "identified-scheme") if m in of}
+    main = {of[m] for m in ("pimbrl", "known-scheme") if m in of}
+    if rules.get("tuned model-free arm"):
+        main.add(str(rules["tuned model-free arm"]))
+    controllers = [f for f in families if f.method in CONTROL_METHODS]
+    if controllers:
+        main.add(max(controllers, key=lambda f: f.iqm).name)
+    return main
+
+
+def _question(spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int) -> str:
+    first = spec.tuning[families[0].name]
+    wrong = f" with the prior {_json_line(spec.overrides['model.prior'])}" if "model.prior" in spec.overrides else ""
+    claims = "; ".join(f"{hid}: {h['claim']}" for hid, h in hypotheses.items())
+    return (
+        f"On {system}{wrong}, with each method's setting chosen on the validation draws by {spec.name} (equal "
+        f"budgets: {len(first)} settings x {len(spec.seeds_of(first[0]))} seeds) and every run judged once on the "
+        f"first {episodes} states of the holdout pool, which of these claims hold? {claims}."
+    )
+
+
+def _plan(
+    spec: StudySpec,
+    group: dict[str, Any],
+    draft: StudySpec,
+    families: list[_Family],
+    total_steps: int | None,
+    tuned_steps: int,
+    episodes: int,
+) -> str:
+    """The compute plan: each arm's mean wall-clock in the tuning runs x its runs (two for a seed-free controller)."""
+    from .engine import plan_study
+    from .replicas import seed_free
+
+    scale, scaled = 1.0, ""
+    if total_steps is not None and total_steps != tuned_steps:
+        scale = total_steps / tuned_steps
+        scaled = f", scaled by {scale:g} from the tuning runs' {tuned_steps:,d} steps to {total_steps:,d}"
+    runs = plan_study(draft, Path(draft.name))
+    parts, minutes = [], 0.0
+    for fam in families:
+        own = [r for r in runs if r.arm == fam.name]
+        trained = min(len(own), 2) if own and seed_free(own[0]) else len(own)
+        wall = (group["arms"][fam.arm.name].get("wall_s") or 0.0) / 60 * scale
+        parts.append(f"{fam.name} {wall:.1f}")
+        minutes += trained * wall
+    return (
+        f"{len(runs)} runs ({len(families)} arms), minutes per run from {spec.name}'s runs (one of two processes"
+        f"{scaled}): {', '.join(parts)}; plus {episodes} holdout episodes each; a seed-free controller trains two "
+        f"seeds: about {minutes:,.0f} CPU-minutes, {minutes / 2:,.0f} minutes with two processes (--jobs 2); "
+        "resumed across sessions"
+    )
+
+
+def _relative(path: str, folder: Path) -> str:
+    """``path`` (a module name, or a file) as the new spec names it: a file relative to its folder."""
+    if not path.endswith(".py") and not path.endswith(".json"):
+        return path
+    return os.path.relpath(path, folder)
+
+
+def _wrapped(text: str, indent: str, width: int = 110) -> list[str]:
+    """``text`` as lines of a YAML folded block (``>-``)."""
+    lines, line = [], ""
+    for word in text.split():
+        if line and len(line) + 1 + len(word) > width:
+            lines.append(indent + line)
+            line = word
+        else:
+            line = f"{line} {word}" if line else word
+    if line:
+        lines.append(indent + line)
+    return lines
