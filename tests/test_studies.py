@@ -506,6 +506,23 @@ def _status_reads_states_and_steps_but_no_return(path: Path, root: Path, capsys)
     assert "0 interrupted, 1 not started, 1 unreadable" in out and f"Unreadable: {root / 'mfrl' / 'seed1'}: " in out
 
 
+def test_status_times_an_arm_with_no_finished_run_by_another_setting_of_its_method(tmp_path) -> None:
+    from pimbrl.experiments.engine import plan_study
+    from pimbrl.experiments.progress import RunProgress, progress_lines
+
+    methods = {"lr-a": {"method": "mfrl", "overrides": {"agent.actor_lr": 1e-3}},
+               "lr-b": {"method": "mfrl", "overrides": {"agent.actor_lr": 3e-3}},
+               "matched": {"method": "mfrl", "match_updates": True}, "mbrl": {"method": "mbrl"}}  # fmt: skip
+    spec = load_spec(_spec(tmp_path, methods=methods, seeds=2))
+    runs = plan_study(spec, tmp_path / "root")
+    progress = [RunProgress(r, "finished", r.config.total_steps, 120.0) if r.arm == "lr-a" else RunProgress(r, "not started", 0, None)
+                for r in runs]  # fmt: skip
+    estimate = next(line for line in progress_lines(spec, progress) if line.startswith("Estimate"))
+    assert estimate.startswith("Estimate: about 4 CPU-minutes left")  # lr-b's two runs at lr-a's 2 minutes
+    assert "(lr-b timed by the finished runs of the other settings of their method and agent" in estimate
+    assert "plus matched, mbrl, which no finished run times yet" in estimate  # other updates per step; another method
+
+
 def test_status_counts_a_dpc_runs_gradient_steps(tmp_path, capsys) -> None:
     """A DPC run has no evaluations while it trains: status reads its gradient steps from control.json."""
     from pimbrl.experiments.engine import plan_study

@@ -113,6 +113,18 @@ def study_progress(spec: StudySpec, root: str | Path) -> list[RunProgress]:
     return [_progress(run) for run in plan_study(spec, root)]
 
 
+def _kind(run: StudyRun) -> tuple[str, ...]:
+    """What a run's wall-clock mostly follows: its system, method, agent, updates per real step and budget.
+
+    An arm none of whose runs has finished is timed by the finished runs of arms of its kind (another
+    learning rate, rollout length or physics weight of the same method): a rough figure, said so.
+    """
+    cfg = run.config
+    agent = "" if cfg.control else f"{cfg.agent.name} utd {cfg.utd:g}"
+    budget = f"{cfg.method.iterations}" if isinstance(cfg.method, DPC) else f"{cfg.total_steps}"
+    return (run.system, cfg.method.name, agent, budget)
+
+
 def _minutes(seconds: float) -> str:
     return f"{seconds / 60:,.1f} min"
 
@@ -143,7 +155,11 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
     copies = {  # not where both probes have finished and disagree: those seeds train (as with --no-replicas)
         path for path, (a, b) in planned.items() if not (state[a.path] == state[b.path] == "finished" and not same_episodes(a, b))
     }
-    left_s, unknown = 0.0, []
+    left_s, unknown, borrowed = 0.0, [], []
+    kin: dict[tuple[str, ...], list[float]] = {}  # finished wall-clocks of every arm of one kind (see _kind)
+    for p in progress:
+        if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s):
+            kin.setdefault(_kind(p.run), []).append(p.wall_s)
     for label, ps in groups.items():
         done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
         mean = sum(done) / len(done) if done else None
@@ -158,12 +174,21 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
         ]
         lines.append("| " + " | ".join(cells) + " |")
         todo = [p for p in ps if p.state != "finished" and p.run.path not in copies]
+        if todo and mean is None and kin.get(_kind(ps[0].run)):  # another setting of the same method and agent
+            others = kin[_kind(ps[0].run)]
+            mean = sum(others) / len(others)
+            borrowed.append(label)
         if todo and mean is None:
             unknown.append(label)
         elif mean is not None:
             left_s += sum(mean * max(0.0, 1.0 - p.steps / max(p.total_steps, 1)) for p in todo)
     lines.append("")
     estimate = f"about {left_s / 60:,.0f} CPU-minutes left, {left_s / 60 / max(jobs, 1):,.0f} minutes at --jobs {jobs}"
+    if borrowed:
+        estimate += (
+            f" ({', '.join(borrowed)} timed by the finished runs of the other settings of their method and agent, "
+            "at the same budget)"
+        )
     if unknown:
         estimate += (
             f", plus {', '.join(unknown)}, which no finished run times yet"
