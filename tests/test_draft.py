@@ -21,6 +21,7 @@ def _draft(tuning: str, tmp_path: Path, **kwargs):
     spec = load_spec(PENDING / f"{tuning}.yaml")
     out = REGISTERED / f"draft-of-{tuning}.yaml"  # never written: only its folder is used
     text = draft_confirmatory(spec, load_record(spec), out, **kwargs)
+    assert not out.exists()
     return text, parse_spec(load_yaml(text), where="draft", base=REGISTERED, text=text)
 
 
@@ -42,23 +43,61 @@ def test_the_draft_of_a_finished_tuning_study_has_the_registered_spec_s_arms_and
 
 def test_h4_is_stated_against_every_rl_arm_and_h2_only_under_a_wrong_prior(tmp_path) -> None:
     _, draft = _draft("tune-burgers", tmp_path)
-    ids = {h.id: h for h in draft.hypotheses}
-    rl = [a.name for a in draft.arms if a.method not in ("feedback", "mpc", "dpc")]
-    assert ids["H4a"].than == ids["H4b"].than == "mfrl-matched"  # the rule's best RL arm keeps the plain id
-    assert {f"H4a-{a}" for a in rl if a != "mfrl-matched"} <= set(ids) and "H4a-mpc" not in ids
-    assert not any(i.startswith("H2") for i in ids)
+    ids = {h.id: (h.better, h.than) for h in draft.hypotheses}
+    rl = ["mfrl", "crossq", "redq", "mbrl", "pimbrl", "known-scheme"]  # every RL arm but the rule's best
+    assert ids["H4a"] == ("mpc", "mfrl-matched") and ids["H4b"] == ("dpc", "mfrl-matched")
+    assert {i: v for i, v in ids.items() if i.startswith("H4a-")} == {f"H4a-{a}": ("mpc", a) for a in rl}
+    assert {i: v for i, v in ids.items() if i.startswith("H4b-")} == {f"H4b-{a}": ("dpc", a) for a in rl}
+    assert set(ids) == {"H1a", "H1b", "H3", "H4a", "H4b"} | {f"H4{x}-{a}" for x in "ab" for a in rl}
+    assert ("mpc", "feedback") in draft.comparisons
     _, partial = _draft("tune-partial-burgers", tmp_path)
     assert [h.id for h in partial.hypotheses] == ["H2a", "H2b"]  # no H3 or H4 with a wrong prior (no controller)
 
 
-def test_fewer_seeds_for_the_other_arms_and_a_longer_budget_scale_the_plan(tmp_path) -> None:
+def test_fewer_seeds_for_the_other_arms_keep_every_hypothesis_decidable(tmp_path) -> None:
     text, draft = _draft("tune-burgers", tmp_path, seeds=5, other_seeds=3, total_steps=6000)
     seeds = {a.name: draft.seeds_of(a) for a in draft.arms}
-    main_arms = {"mfrl-matched", "pimbrl", "known-scheme", "mpc"}  # the protocol's; MPC is the best controller
+    # every arm of H1 and H3, the best RL arm (mfrl-matched), MPC, DPC and the best controller (MPC)
+    main_arms = {"mfrl-matched", "mbrl", "pimbrl", "known-scheme", "mpc", "dpc"}
     assert {a for a, s in seeds.items() if len(s) == 5} == main_arms
     assert all(s == (100, 101, 102) for a, s in seeds.items() if a not in main_arms)
+    for h in draft.hypotheses:  # none is inconclusive by the verdict rule's count of runs before it runs
+        assert len(seeds[h.better]) >= 5 and len(seeds[h.than]) >= 5, h.id
+    assert "H4a-crossq" not in {h.id for h in draft.hypotheses} and ("mpc", "crossq") in draft.comparisons
     assert draft.overrides["total_steps"] == 6000
-    assert "scaled by 2 from the tuning runs' 3,000 steps to 6,000" in " ".join(text.split())
+    plan = " ".join(text.split())
+    assert "RL arms scaled by 2 from the tuning runs' 3,000 steps to 6,000" in plan
+    assert "mbrl 5.1" in plan and "mpc 1.8" in plan and "dpc 28.4" in plan  # MBRL doubled; controllers not
+
+
+def test_the_steps_hypotheses_count_to_the_recipe_s_threshold_or_one_given(tmp_path) -> None:
+    import dataclasses
+
+    spec = load_spec(PENDING / "tune-burgers.yaml")
+    record = load_record(spec)
+    several = {**record, "thresholds": {"pimbrl/Burgers-v0": [-20.0, -11.0]}}  # as KS lists -100 and its -55
+    text = draft_confirmatory(spec, several, None)
+    steps = {h.id: h.threshold for h in parse_spec(load_yaml(text), where="d", base=PENDING).hypotheses if h.threshold}
+    assert steps == {"H1a": -11.0, "H3": -11.0}  # the recipe's, not the first listed
+    none = dataclasses.replace(spec, overrides={**spec.overrides, "threshold": None})
+    bare = {**record, "thresholds": {}}
+    with pytest.raises(ConfigError, match="recipe sets none: give --threshold T"):
+        draft_confirmatory(none, bare, None)
+    text = draft_confirmatory(none, bare, None, threshold=-10.5)
+    assert {h.threshold for h in parse_spec(load_yaml(text), where="d", base=PENDING).hypotheses} == {None, -10.5}
+
+
+def test_two_families_of_one_method_and_bad_counts_are_one_line_errors(tmp_path) -> None:
+    import dataclasses
+
+    spec = load_spec(PENDING / "tune-burgers.yaml")
+    record = load_record(spec)
+    twice = dataclasses.replace(spec, tuning={**spec.tuning, "mbrl-again": spec.tuning["mbrl"]})
+    with pytest.raises(ConfigError, match="mbrl, mbrl-again all tune the method mbrl"):
+        draft_confirmatory(twice, record, None)
+    for kwargs in ({"seeds": 0}, {"seeds": 3, "other_seeds": 5}, {"holdout_episodes": 0}):
+        with pytest.raises(ConfigError, match="each must be at least 1"):
+            draft_confirmatory(spec, record, None, **kwargs)
 
 
 def test_an_unfinished_or_non_tuning_study_gives_no_draft(tmp_path) -> None:
@@ -84,3 +123,12 @@ def test_the_cli_writes_a_draft_once_and_never_over_a_file(tmp_path, capsys) -> 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "exists" in err[0] and "never rewritten" in err[0]
     assert out.read_bytes() == before
+
+
+def test_create_file_never_writes_over_a_file(tmp_path) -> None:
+    from pimbrl.fileio import create_file
+
+    create_file(tmp_path / "a" / "s.yaml", b"one")
+    with pytest.raises(FileExistsError):
+        create_file(tmp_path / "a" / "s.yaml", b"two")
+    assert (tmp_path / "a" / "s.yaml").read_bytes() == b"one" and sorted(p.name for p in (tmp_path / "a").iterdir()) == ["s.yaml"]

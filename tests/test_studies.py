@@ -521,6 +521,15 @@ def test_status_times_an_arm_with_no_finished_run_by_another_setting_of_its_meth
     assert estimate.startswith("Estimate: about 4 CPU-minutes left")  # lr-b's two runs at lr-a's 2 minutes
     assert "(lr-b timed by the finished runs of the other settings of their method and agent" in estimate
     assert "plus matched, mbrl, which no finished run times yet" in estimate  # other updates per step; another method
+    horizons = {
+        "h5": {"method": "mpc", "overrides": {"model.horizon": 5}},
+        "h9": {"method": "mpc", "overrides": {"model.horizon": 9}},
+    }
+    spec = load_spec(_spec(tmp_path, name="c.yaml", methods=horizons, seeds=1, overrides={"eval_episodes": 2}))
+    runs = plan_study(spec, tmp_path / "c")
+    progress = [RunProgress(runs[0], "finished", 0, 600.0), RunProgress(runs[1], "not started", 0, None)]
+    estimate = next(line for line in progress_lines(spec, progress) if line.startswith("Estimate"))
+    assert "plus h9, which no finished run times yet" in estimate  # a controller's cost follows its horizon
 
 
 def test_status_counts_a_dpc_runs_gradient_steps(tmp_path, capsys) -> None:

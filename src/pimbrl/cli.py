@@ -501,23 +501,25 @@ def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
     """`pimbrl study draft TUNING`: the confirmatory spec its record gives, to --out (never over a file) or stdout."""
     from .experiments.draft import draft_confirmatory
     from .experiments.report import load_record
-    from .fileio import atomic_write_bytes
+    from .fileio import create_file
 
-    out = Path(args.out) if args.out else Path(spec.path or ".").parent / "draft.yaml"
-    if args.out and out.exists():
+    out = Path(args.out) if args.out else None
+    if out is not None and out.exists():  # checked again, atomically, when it is written
         raise FileExistsError(
             f"{out} exists: a registered spec is never rewritten (give another --out, or remove an unregistered draft)"
         )
     record = load_record(spec, root if spec.record is None or spec.record.format == "study" else None)
     text = draft_confirmatory(
         spec, record, out, seeds=args.seeds, other_seeds=args.other_seeds, total_steps=args.total_steps,
-        holdout_episodes=args.holdout_episodes,
+        holdout_episodes=args.holdout_episodes, threshold=args.threshold,
     )  # fmt: skip
-    if not args.out:
+    if out is None:
         print(text, end="")
         return 0
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out, text.encode())
+    try:
+        create_file(out, text.encode())
+    except FileExistsError:
+        raise FileExistsError(f"{out} appeared while the draft was made: nothing was written (give another --out)") from None
     print(f"wrote {out}: review it, then commit it alone before its first run (`pimbrl study run {out}`)")
     return 0
 
@@ -835,6 +837,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     st.add_argument("--total-steps", type=int, default=None, help="draft: real steps per run, where not the tuning runs' (KS)")
     st.add_argument("--holdout-episodes", type=int, default=100, help="draft: holdout states each run's final policy plays")
+    st.add_argument(
+        "--threshold", type=float, default=None, help="draft: the return H1a and H3 count steps to, where the recipe sets none"
+    )
     st.add_argument("--pages", default=None, metavar="DOCS", help="report: write DOCS/results.md and DOCS/reproduce.md")
     _add_import(st)
     st.set_defaults(func=_cmd_study)

@@ -83,6 +83,28 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes | io.BytesIO) -> Non
     fsync_directory(path.parent)  # make the rename itself durable
 
 
+def create_file(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path``, which must not exist: whole or not at all, never over another file.
+
+    A fsynced temporary file in the same directory is hard-linked to ``path`` (which fails with
+    :class:`FileExistsError` where something is there, even one made a moment before) and then removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, new_file_mode())
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.link(tmp, path)
+    finally:
+        os.remove(tmp)
+    fsync_directory(path.parent)
+
+
 def fsync_directory(path: str | os.PathLike) -> None:
     """Make the renames in directory ``path`` durable, where the platform allows it (errors are ignored)."""
     try:

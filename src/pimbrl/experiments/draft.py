@@ -30,6 +30,7 @@ from ..config import ConfigError, load_yaml
 from ..training.methods import CONTROL_METHODS
 from .report import _json_line, study_report
 from .spec import StudySpec, parse_spec
+from .stats import MIN_RUNS_FOR_VERDICT
 
 __all__ = ["FIRST_SEED", "draft_confirmatory"]
 
@@ -54,26 +55,35 @@ class _Family:
 def draft_confirmatory(
     spec: StudySpec,
     record: dict[str, Any],
-    out: Path,
+    out: Path | None,
     *,
     seeds: int = 10,
     other_seeds: int | None = None,
     holdout_episodes: int = 100,
     total_steps: int | None = None,
+    threshold: float | None = None,
 ) -> str:
     """The YAML text of the confirmatory spec drafted from tuning study ``spec`` and its ``record``.
 
     Args:
         spec: the tuning study (``tuning:``), every candidate finished.
         record: its record (:func:`~pimbrl.experiments.report.load_record`).
-        out: where the spec will be written (its ``imports`` and ``record`` paths are relative to its folder).
-        seeds: seeds of every arm (from :data:`FIRST_SEED`), or of the protocol's main arms where
-            ``other_seeds`` is given (the tuned model-free arm, PiMBRL, known-scheme Dyna, the best
-            controller; under a wrong prior MBRL, the wrong and the identified scheme).
+        out: where the spec will be written (its ``imports`` and ``record`` paths are relative to its folder);
+            ``None``: printed, its paths relative to the tuning spec's folder.
+        seeds: seeds of every arm (from :data:`FIRST_SEED`), or of the main arms where ``other_seeds`` is
+            given: every arm of H1-H3 (H2 under a wrong prior), the best RL arm, MPC, DPC and the best
+            controller. An H4 pair with an arm of fewer seeds than a verdict needs is a comparison only.
         other_seeds: seeds of the other arms (KS: 5 and 3), or ``None`` for ``seeds`` everywhere.
         holdout_episodes: the holdout states each run's final policy plays once (its outcome).
         total_steps: the runs' real steps where they differ from the tuning runs' (KS tunes shorter runs).
+        threshold: the return of the steps-to-threshold hypotheses (H1a, H3), where the system's recipe
+            sets none (chosen on earlier or validation curves, never on the holdout pool).
     """
+    if seeds < 1 or (other_seeds is not None and not 1 <= other_seeds <= seeds) or holdout_episodes < 1:
+        raise ConfigError(
+            f"draft: seeds {seeds}, other seeds {other_seeds}, holdout episodes {holdout_episodes}: each must be "
+            "at least 1, and the other arms' seeds at most the main arms'"
+        )
     if not spec.tuning:
         raise ConfigError(f"{spec.name} is not a tuning study (no `tuning:`): a confirmatory draft needs each method's choice")
     if len(spec.systems) != 1 or spec.grid:
@@ -97,10 +107,18 @@ def draft_confirmatory(
     system = spec.systems[0]
     thresholds = [float(t) for t in (record.get("thresholds") or {}).get(system) or spec.thresholds]
     partial = "model.prior" in spec.overrides
-    hypotheses = _hypotheses(families, rules, thresholds[0] if thresholds else None, partial)
+    arms = _protocol_arms(spec.name, families, rules, partial)
+    if threshold is None:
+        threshold = _recipe_threshold(spec)
+    if threshold is not None and threshold not in thresholds:
+        thresholds.append(threshold)
+    roles = ("pimbrl", "mbrl", "known-scheme", "identified-scheme", "mpc", "dpc", "best controller",
+             "tuned model-free arm", "best RL arm")  # fmt: skip
+    main = {str(arms[r]) for r in roles if arms[r]}
+    few = other_seeds is not None and other_seeds < MIN_RUNS_FOR_VERDICT
+    hypotheses = _hypotheses(spec.name, families, arms, threshold, set() if not few else main)
     if not hypotheses:
         raise ConfigError(f"{spec.name}: its methods give none of the protocol's hypotheses (docs/confirmatory.md)")
-    main = _main_arms(families, rules, partial)
     seed_list = list(range(FIRST_SEED, FIRST_SEED + seeds))
     other_list = None if other_seeds is None else list(range(FIRST_SEED, FIRST_SEED + other_seeds))
     overrides = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
@@ -109,7 +127,8 @@ def draft_confirmatory(
         overrides["total_steps"] = total_steps
     overrides["holdout_episodes"] = holdout_episodes
     name = spec.name.replace("tune-", "confirmatory-", 1) if spec.name.startswith("tune-") else f"confirmatory-{spec.name}"
-    folder = out.resolve().parent
+    folder = out.resolve().parent if out is not None else (spec.path.parent if spec.path else Path.cwd())
+    where = str(out) if out is not None else f"the draft of {spec.name}"
 
     lines = [
         "# Pre-registered (docs/confirmatory.md): committed before its first run, never edited after it.",
@@ -142,9 +161,11 @@ def draft_confirmatory(
         lines.append(f"thresholds: {_json_line(thresholds)}")
     lines.append(f"statistics: {_json_line({'confidence': spec.confidence, 'reps': spec.reps})}")
     pairs = list(dict.fromkeys((h["better"], h["than"]) for h in hypotheses.values()))
-    by_method = {f.method: f.name for f in families}
-    if "mpc" in by_method and "feedback" in by_method:
-        pairs.append((by_method["mpc"], by_method["feedback"]))
+    rl = [f.name for f in families if f.method not in CONTROL_METHODS]
+    for controller in (arms["mpc"], arms["dpc"]):  # H4's pairs that are no hypothesis: compared all the same
+        pairs += [(controller, arm) for arm in rl if controller and (controller, arm) not in pairs]
+    if arms["mpc"] and arms["feedback"]:
+        pairs.append((arms["mpc"], arms["feedback"]))
     lines.append("comparisons:")
     lines += [f"  - [{a}, {b}]" for a, b in pairs]
     lines.append("hypotheses:")
@@ -154,10 +175,10 @@ def draft_confirmatory(
     else:
         record_path = f"../results/{name}.json"
     lines.append(f"record: {{path: {record_path}, format: study}}")
-    draft = _parsed(lines, out, folder)  # a draft that does not read is a bug
+    draft = _parsed(lines, where, folder)  # a draft that does not read is a bug
     plan = _plan(spec, group, draft, families, total_steps, tuned_steps, holdout_episodes)
     lines[-1:-1] = ["plan: >-", *_wrapped(plan, "  ")]
-    _parsed(lines, out, folder)
+    _parsed(lines, where, folder)
     return "\n".join(lines) + "\n"
 
 
@@ -168,68 +189,93 @@ def _tuned_steps(spec: StudySpec) -> int:
     return int(plan_study(spec, Path(spec.name))[0].config.total_steps)
 
 
-def _parsed(lines: list[str], out: Path, folder: Path) -> StudySpec:
+def _parsed(lines: list[str], where: str, folder: Path) -> StudySpec:
     text = "\n".join(lines) + "\n"
-    return parse_spec(load_yaml(text), where=str(out), base=folder, text=text)
+    return parse_spec(load_yaml(text), where=where, base=folder, text=text)
+
+
+#: the methods the protocol's hypotheses name, one arm each (the model-free arm is chosen by rule)
+_NAMED = ("pimbrl", "mbrl", "known-scheme", "identified-scheme", "mpc", "dpc", "feedback")
+
+
+def _protocol_arms(name: str, families: list[_Family], rules: dict[str, str | None], partial: bool) -> dict[str, str | None]:
+    """The arm of each role the protocol names: a method's one family, the rules' arms, the best controller.
+
+    Two families of one named method (two PiMBRL settings kept apart) are an error: which one a hypothesis
+    means would be a choice the protocol does not make.
+    """
+    arms: dict[str, str | None] = {}
+    for method in _NAMED:
+        found = [f.name for f in families if f.method == method]
+        if len(found) > 1:
+            raise ConfigError(
+                f"{name}: {', '.join(found)} all tune the method {method}; the protocol's hypotheses name one arm per "
+                "method: write the confirmatory spec by hand, naming which"
+            )
+        arms[method] = found[0] if found else None
+    controllers = [f for f in families if f.method in CONTROL_METHODS]
+    arms["best controller"] = max(controllers, key=lambda f: f.iqm).name if controllers else None
+    arms["tuned model-free arm"] = None if partial else rules.get("tuned model-free arm")
+    arms["best RL arm"] = None if partial else rules.get("best RL arm")
+    if partial:  # under a wrong prior: H1 and H2 only (no controller with a wrong equation is in the protocol)
+        arms.update({"mpc": None, "dpc": None, "best controller": None})
+    else:
+        arms["identified-scheme"] = None
+    return arms
+
+
+def _recipe_threshold(spec: StudySpec) -> float | None:
+    """The system's threshold as the tuning runs had it (their resolved ``threshold``), or ``None``."""
+    from .engine import plan_study
+
+    value = plan_study(spec, Path(spec.name))[0].config.threshold
+    return None if value is None else float(value)
 
 
 def _hypotheses(
-    families: list[_Family], rules: dict[str, str | None], threshold: float | None, partial: bool
+    name: str, families: list[_Family], arms: dict[str, str | None], threshold: float | None, main: set[str]
 ) -> dict[str, dict[str, Any]]:
-    """The protocol's hypotheses (docs/confirmatory.md) among ``families``, in its order."""
-    of = {f.method: f.name for f in families}
-    steps = {} if threshold is None else {"metric": "steps_to_threshold", "threshold": threshold}
-    t = "" if threshold is None else f"{threshold:g}"
+    """The protocol's hypotheses (docs/confirmatory.md) among ``families``, in its order.
+
+    ``main``: where some arms run fewer seeds, the arms that run the full number; an H4 pair with another
+    arm would be inconclusive by rule, so it is left to the comparisons.
+    """
+    pimbrl, mbrl, known, identified = arms["pimbrl"], arms["mbrl"], arms["known-scheme"], arms["identified-scheme"]
+    model_free = arms["tuned model-free arm"]
+    if threshold is None and ((pimbrl and mbrl) or (known and model_free and not identified)):
+        raise ConfigError(
+            f"{name}: H1a and H3 count real steps to a threshold, and the system's recipe sets none: give "
+            "--threshold T (chosen on earlier or validation curves, never on the holdout pool)"
+        )
+    t = f"{threshold:g}" if threshold is not None else ""
+    steps = {"metric": "steps_to_threshold", "threshold": threshold}
     out: dict[str, dict[str, Any]] = {}
-    if "pimbrl" in of and "mbrl" in of:
-        if steps:
-            out["H1a"] = {"claim": f"PiMBRL reaches {t} in fewer real steps than MBRL", "better": of["pimbrl"],
-                          "than": of["mbrl"], **steps}  # fmt: skip
-        out["H1b"] = {
-            "claim": "PiMBRL's final policy beats MBRL's on the holdout states",
-            "better": of["pimbrl"],
-            "than": of["mbrl"],
-        }
-    if partial:
-        identified = of.get("identified-scheme")
-        if identified and "mbrl" in of:
-            out["H2a"] = {"claim": "Dyna with the identified scheme beats data-only MBRL on the holdout states",
-                          "better": identified, "than": of["mbrl"]}  # fmt: skip
-        if identified and "known-scheme" in of:
-            out["H2b"] = {"claim": "Dyna with the identified scheme beats the wrong prior's scheme held fixed on the "
-                          "holdout states", "better": identified, "than": of["known-scheme"]}  # fmt: skip
-        return out
-    model_free = rules.get("tuned model-free arm")
-    if "known-scheme" in of and model_free and steps:
+    if pimbrl and mbrl:
+        out["H1a"] = {"claim": f"PiMBRL reaches {t} in fewer real steps than MBRL", "better": pimbrl, "than": mbrl, **steps}
+        out["H1b"] = {"claim": "PiMBRL's final policy beats MBRL's on the holdout states", "better": pimbrl, "than": mbrl}
+    if identified and mbrl:
+        out["H2a"] = {"claim": "Dyna with the identified scheme beats data-only MBRL on the holdout states",
+                      "better": identified, "than": mbrl}  # fmt: skip
+    if identified and known:
+        out["H2b"] = {"claim": "Dyna with the identified scheme beats the wrong prior's scheme held fixed on the "
+                      "holdout states", "better": identified, "than": known}  # fmt: skip
+    if known and model_free and not identified:
         out["H3"] = {"claim": f"Known-scheme Dyna reaches {t} in fewer real steps than the tuned model-free arm",
-                     "better": of["known-scheme"], "than": model_free, **steps}  # fmt: skip
-    best = rules.get("best RL arm")
+                     "better": known, "than": model_free, **steps}  # fmt: skip
+    best = arms["best RL arm"]
     rl = [f.name for f in families if f.method not in CONTROL_METHODS]
     for hid, method, what in (
         ("H4a", "mpc", "MPC with the known equation"),
         ("H4b", "dpc", "DPC trained through the known equation"),
     ):
-        if method not in of or not best:
+        controller = arms[method]
+        if not controller or not best:
             continue
-        out[hid] = {"claim": f"{what} beats the best RL arm ({best}) on the holdout states", "better": of[method], "than": best}
+        out[hid] = {"claim": f"{what} beats the best RL arm ({best}) on the holdout states", "better": controller, "than": best}
         for arm in rl:
-            if arm != best:
-                out[f"{hid}-{arm}"] = {"claim": f"{what} beats {arm} on the holdout states", "better": of[method], "than": arm}
+            if arm != best and (not main or arm in main):
+                out[f"{hid}-{arm}"] = {"claim": f"{what} beats {arm} on the holdout states", "better": controller, "than": arm}
     return out
-
-
-def _main_arms(families: list[_Family], rules: dict[str, str | None], partial: bool) -> set[str]:
-    """The arms the protocol gives the full seeds where others get fewer (KS)."""
-    of = {f.method: f.name for f in families}
-    if partial:
-        return {of[m] for m in ("mbrl", "known-scheme", "identified-scheme") if m in of}
-    main = {of[m] for m in ("pimbrl", "known-scheme") if m in of}
-    if rules.get("tuned model-free arm"):
-        main.add(str(rules["tuned model-free arm"]))
-    controllers = [f for f in families if f.method in CONTROL_METHODS]
-    if controllers:
-        main.add(max(controllers, key=lambda f: f.iqm).name)
-    return main
 
 
 def _question(spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int) -> str:
@@ -259,13 +305,14 @@ def _plan(
     scale, scaled = 1.0, ""
     if total_steps is not None and total_steps != tuned_steps:
         scale = total_steps / tuned_steps
-        scaled = f", scaled by {scale:g} from the tuning runs' {tuned_steps:,d} steps to {total_steps:,d}"
+        scaled = f"; RL arms scaled by {scale:g} from the tuning runs' {tuned_steps:,d} steps to {total_steps:,d}"
     runs = plan_study(draft, Path(draft.name))
     parts, minutes = [], 0.0
     for fam in families:
         own = [r for r in runs if r.arm == fam.name]
         trained = min(len(own), 2) if own and seed_free(own[0]) else len(own)
-        wall = (group["arms"][fam.arm.name].get("wall_s") or 0.0) / 60 * scale
+        control = bool(own) and own[0].config.control  # a controller's cost follows its horizon, not the budget
+        wall = (group["arms"][fam.arm.name].get("wall_s") or 0.0) / 60 * (1.0 if control else scale)
         parts.append(f"{fam.name} {wall:.1f}")
         minutes += trained * wall
     return (

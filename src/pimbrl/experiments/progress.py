@@ -114,15 +114,14 @@ def study_progress(spec: StudySpec, root: str | Path) -> list[RunProgress]:
 
 
 def _kind(run: StudyRun) -> tuple[str, ...]:
-    """What a run's wall-clock mostly follows: its system, method, agent, updates per real step and budget.
+    """What an RL run's wall-clock mostly follows: its system, method, agent, updates per real step and budget.
 
-    An arm none of whose runs has finished is timed by the finished runs of arms of its kind (another
+    An RL arm none of whose runs has finished is timed by the finished runs of arms of its kind (another
     learning rate, rollout length or physics weight of the same method): a rough figure, said so.
     """
     cfg = run.config
     agent = "" if cfg.control else f"{cfg.agent.name} utd {cfg.utd:g}"
-    budget = f"{cfg.method.iterations}" if isinstance(cfg.method, DPC) else f"{cfg.total_steps}"
-    return (run.system, cfg.method.name, agent, budget)
+    return (run.system, cfg.method.name, agent, f"{cfg.total_steps}")
 
 
 def _minutes(seconds: float) -> str:
@@ -134,7 +133,9 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
 
     The table gives each arm's finished, running (with steps), interrupted and unstarted runs and the mean
     wall-clock of its finished runs. The estimate charges each unfinished run its arm's mean finished
-    wall-clock, less the fraction of steps it has done; arms with no finished run are named, not guessed.
+    wall-clock, less the fraction of steps it has done. An RL arm with no finished run is charged the mean of
+    the finished runs of its kind (:func:`_kind`: another setting of its method), and named; a controller
+    arm with none is named, not guessed.
     """
     counts = {s: sum(p.state == s for p in progress) for s in STATES}
     hide = spec.kind == "confirmatory"  # an arm's wall-clock can follow its episodes' lengths (Cart-Pole: its return)
@@ -174,7 +175,8 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
         ]
         lines.append("| " + " | ".join(cells) + " |")
         todo = [p for p in ps if p.state != "finished" and p.run.path not in copies]
-        if todo and mean is None and kin.get(_kind(ps[0].run)):  # another setting of the same method and agent
+        if todo and mean is None and not ps[0].run.config.control and kin.get(_kind(ps[0].run)):  # a controller's
+            # cost follows its horizon (DPC at 10, 20, 40: 7, 14, 28 min on Burgers): never borrowed
             others = kin[_kind(ps[0].run)]
             mean = sum(others) / len(others)
             borrowed.append(label)

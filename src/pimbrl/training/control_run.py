@@ -289,7 +289,9 @@ class ControlRun:
         self.state["inference_s_per_step"] = result.inference_s_per_step
         self._save()
         cost = result.inference_s_per_step * 1e3
-        self._say(f"test return {result.mean:.3f} over {len(returns)} episodes; {cost:.3f} ms per control step")
+        self._say(
+            f"{self.cfg.eval_protocol} return {result.mean:.3f} over {len(returns)} episodes; {cost:.3f} ms per control step"
+        )
 
     def _updates(self) -> int:
         """Gradient steps of the controller's training (DPC), 0 for the others."""
