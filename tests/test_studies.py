@@ -796,6 +796,28 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
     assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("system", ["burgers", "pendulum"])
+def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str) -> None:
+    """src/pimbrl/systems/SYSTEM.yaml's `best` is what tune-SYSTEM's report writes, section for section."""
+    import dataclasses
+
+    from pimbrl.config import load_yaml
+    from pimbrl.systems.presets import load_presets
+
+    repo = Path(__file__).resolve().parents[1]
+    spec = dataclasses.replace(load_spec(repo / "benchmarks" / "pending" / f"tune-{system}.yaml"), reps=200)
+    report = study_report(spec, load_record(spec))
+    recipe = load_yaml(report.markdown.split("```yaml\n")[2].split("```")[0])
+    best = load_presets(repo / "src" / "pimbrl" / "systems" / f"{system}.yaml")[1]["best"]
+    assert f"tune-{system}" in best.chosen_by and "validation" in best.chosen_by
+    assert recipe["methods"] == {k: dict(v) for k, v in best.methods.items()}
+    assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}
+    for key, value in spec.overrides.items():  # the budget every candidate ran with is the recipe's
+        if key != "eval_protocol":
+            assert best.settings.get(key) == value, key
+
+
 _CONFIRMATORY_SPECS = sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "confirmatory").glob("confirmatory-*.yaml"))
 
 
