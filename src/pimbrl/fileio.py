@@ -62,19 +62,28 @@ def new_file_mode() -> int:
     return 0o666 & ~mask
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes | io.BytesIO) -> None:
-    """Write ``data`` to ``path`` via a fsynced temporary file in the same directory and an atomic rename."""
-    path = Path(path)
-    payload = data.getvalue() if isinstance(data, io.BytesIO) else data
+def _fsynced_temporary(path: Path, data: bytes) -> str:
+    """A temporary file beside ``path`` holding ``data``, flushed to disk (removed again if writing fails)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         if hasattr(os, "fchmod"):
             os.fchmod(fd, new_file_mode())
         with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+    except BaseException:
+        os.remove(tmp)
+        raise
+    return tmp
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes | io.BytesIO) -> None:
+    """Write ``data`` to ``path`` via a fsynced temporary file in the same directory and an atomic rename."""
+    path = Path(path)
+    tmp = _fsynced_temporary(path, data.getvalue() if isinstance(data, io.BytesIO) else data)
+    try:
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -90,15 +99,8 @@ def create_file(path: str | os.PathLike, data: bytes) -> None:
     :class:`FileExistsError` where something is there, even one made a moment before) and then removed.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = _fsynced_temporary(path, data)
     try:
-        if hasattr(os, "fchmod"):
-            os.fchmod(fd, new_file_mode())
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
         os.link(tmp, path)
     finally:
         os.remove(tmp)

@@ -108,8 +108,9 @@ def draft_confirmatory(
     thresholds = [float(t) for t in (record.get("thresholds") or {}).get(system) or spec.thresholds]
     partial = "model.prior" in spec.overrides
     arms = _protocol_arms(spec.name, families, rules, partial)
-    if threshold is None:
-        threshold = _recipe_threshold(spec)
+    tuned = _tuning_run_config(spec)  # the budget and threshold the tuning runs had
+    if threshold is None and tuned.threshold is not None:
+        threshold = float(tuned.threshold)
     if threshold is not None and threshold not in thresholds:
         thresholds.append(threshold)
     roles = ("pimbrl", "mbrl", "known-scheme", "identified-scheme", "mpc", "dpc", "best controller",
@@ -122,7 +123,7 @@ def draft_confirmatory(
     seed_list = list(range(FIRST_SEED, FIRST_SEED + seeds))
     other_list = None if other_seeds is None else list(range(FIRST_SEED, FIRST_SEED + other_seeds))
     overrides = {k: v for k, v in spec.overrides.items() if k != "eval_protocol"}
-    tuned_steps = _tuned_steps(spec)
+    tuned_steps = int(tuned.total_steps)
     if total_steps is not None:
         overrides["total_steps"] = total_steps
     overrides["holdout_episodes"] = holdout_episodes
@@ -182,11 +183,11 @@ def draft_confirmatory(
     return "\n".join(lines) + "\n"
 
 
-def _tuned_steps(spec: StudySpec) -> int:
-    """The real steps of the tuning runs (their resolved ``total_steps``)."""
+def _tuning_run_config(spec: StudySpec) -> Any:
+    """The resolved configuration of the tuning study's first run (its budget and threshold are every run's)."""
     from .engine import plan_study
 
-    return int(plan_study(spec, Path(spec.name))[0].config.total_steps)
+    return plan_study(spec, Path(spec.name))[0].config
 
 
 def _parsed(lines: list[str], where: str, folder: Path) -> StudySpec:
@@ -222,14 +223,6 @@ def _protocol_arms(name: str, families: list[_Family], rules: dict[str, str | No
     else:
         arms["identified-scheme"] = None
     return arms
-
-
-def _recipe_threshold(spec: StudySpec) -> float | None:
-    """The system's threshold as the tuning runs had it (their resolved ``threshold``), or ``None``."""
-    from .engine import plan_study
-
-    value = plan_study(spec, Path(spec.name))[0].config.threshold
-    return None if value is None else float(value)
 
 
 def _hypotheses(
