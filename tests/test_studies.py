@@ -895,7 +895,7 @@ def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys
     out = capsys.readouterr().out
     assert "study a: no run directory runs/a yet" in out and "study b: no run directory runs/b yet" in out
     assert main(["study", "status", str(a), str(b), "--run-dir", "x"]) == 2
-    assert "reads each one's own directory: drop --run-dir" in capsys.readouterr().err
+    assert "own directory and archive: drop --run-dir, --archive" in capsys.readouterr().err
     assert main(["study", "plan", str(a), str(b)]) == 2
     assert "several only with status or report --pages" in capsys.readouterr().err
 

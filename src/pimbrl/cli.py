@@ -488,13 +488,22 @@ def _study_run_dir(spec_path: str, spec_name: str, given: str | None) -> Path:
     return Path("runs") / spec_name
 
 
-def _study_status(spec: Any, root: Path, jobs: int) -> None:
+def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> None:
+    from .experiments.archive import archived_runs
+    from .experiments.engine import plan_study
     from .experiments.progress import progress_lines, study_progress
 
+    kept = archived_runs(root, archive, plan_study(spec, root)) if archive is not None and archive.is_dir() else []
+    waiting = [r for r in kept if not (root / r).exists()]
+    note = f"{len(waiting)} finished run(s) wait in the archive {archive}: `pimbrl study run` copies them back first"
     if not root.is_dir():
         print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
+        if waiting:
+            print(note)
         return
     print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
+    if waiting:
+        print(note)
 
 
 def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
@@ -525,6 +534,7 @@ def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
+    from .experiments.archive import default_archive
     from .experiments.engine import plan_study, run_study
     from .experiments.report import load_record, study_report, write_pages
     from .experiments.spec import load_spec
@@ -539,13 +549,16 @@ def _cmd_study(args: argparse.Namespace) -> int:
             print(f"wrote {path}")
         return 0
     if args.action == "status" and len(args.specs) > 1:
-        if args.run_dir is not None:
-            raise ValueError("`pimbrl study status` with several specs reads each one's own directory: drop --run-dir")
+        if args.run_dir is not None or args.archive is not None:
+            raise ValueError(
+                "`pimbrl study status` with several specs reads each one's own directory and archive: drop --run-dir, --archive"
+            )
         for i, path in enumerate(args.specs):
             if i:
                 print()
             each = load_spec(path)
-            _study_status(each, _study_run_dir(path, each.name, None), args.jobs)
+            kept = None if args.no_archive else default_archive(each)
+            _study_status(each, _study_run_dir(path, each.name, None), args.jobs, kept)
         return 0
     if len(args.specs) != 1:
         raise ValueError(
@@ -553,6 +566,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         )
     spec = load_spec(args.specs[0])
     root = _study_run_dir(args.specs[0], spec.name, args.run_dir)
+    archive = Path(args.archive) if args.archive else default_archive(spec)
     if args.action == "plan":
         runs = plan_study(spec, root)
         for r in runs:
@@ -560,15 +574,21 @@ def _cmd_study(args: argparse.Namespace) -> int:
         print(f"{len(runs)} runs of study {spec.name} ({spec.kind}); plan: {spec.plan or 'not stated in the spec'}")
         return 0
     if args.action == "status":
-        _study_status(spec, root, args.jobs)
+        _study_status(spec, root, args.jobs, None if args.no_archive else archive)
         return 0
     if args.action == "draft":
         return _study_draft(args, spec, root)
+    if args.action == "archive":
+        from .experiments.archive import archive_study
+
+        result = archive_study(spec, root, archive, plan_study(spec, root))
+        print(result.line("archived", archive) + f" (commit it to keep it: git add {archive})")
+        return 0
     if args.action == "run":
         _check_run_dir(str(root))
         record = run_study(
             spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun,
-            replicas=not args.no_replicas, log=log,
+            replicas=not args.no_replicas, archive=None if args.no_archive else archive, log=log,
         )  # fmt: skip
         print(f"study {spec.name}: {len(record['runs'])} runs recorded in {root / 'record.json'}")
         if record["failed"]:
@@ -814,9 +834,11 @@ def build_parser() -> argparse.ArgumentParser:
         "report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
         "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. draft TUNING: the "
         "confirmatory spec a finished tuning study gives by the rules of docs/confirmatory.md (arms, seeds, "
-        "hypotheses, plan), to review and register. Format: pimbrl.experiments.spec.",
+        "hypotheses, plan), to review and register. archive SPEC: copy the finished runs' files (no checkpoints) and the "
+        "registration to the study's archive, to commit; `run` copies them back on a fresh machine. Format: "
+        "pimbrl.experiments.spec.",
     )
-    st.add_argument("action", choices=("plan", "run", "status", "report", "draft"))
+    st.add_argument("action", choices=("plan", "run", "status", "report", "draft", "archive"))
     st.add_argument("specs", nargs="+", metavar="SPEC", help="study spec (YAML)")
     st.add_argument("--run-dir", default=None, help="the study's directory (default: runs/<study name>)")
     st.add_argument(
@@ -826,6 +848,14 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
     st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")
     _add_no_replicas(st, "run: ")
+    st.add_argument(
+        "--archive",
+        default=None,
+        metavar="DIR",
+        help="archive: where the finished runs' files go; run: where they come back from (default: archive/<study name> "
+        "beside the spec)",
+    )
+    st.add_argument("--no-archive", action="store_true", help="run, status: leave the archive out")
     st.add_argument(
         "--out",
         default=None,

@@ -212,6 +212,7 @@ def run_study(
     status: bool = True,
     run: bool = True,
     replicas: bool = True,
+    archive: str | Path | None = None,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Train what is missing of ``spec`` in ``root`` and return (and write) its record.
@@ -221,8 +222,10 @@ def run_study(
     instance end with this process, also a killed one). ``run=False`` trains nothing and collects the runs as
     they stand. ``replicas``: a seed-free controller's arm runs two seeds and copies the first into the others
     where the two agree on every episode (:mod:`.replicas`). A confirmatory spec must be committed before its
-    first run (:mod:`.registration`).
+    first run (:mod:`.registration`). ``archive``: a folder of the study's finished runs (:mod:`.archive`); each
+    one whose directory does not exist here is copied back first, so that only the rest train.
     """
+    from .archive import restore_study
     from .registration import start_study
     from .replicas import plan_replicas, replicate, same_episodes
 
@@ -243,6 +246,8 @@ def run_study(
     root.mkdir(parents=True, exist_ok=True)
     lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
     try:
+        if archive is not None and Path(archive).is_dir():
+            log(restore_study(spec, root, archive, runs).line("restored", Path(archive)))
         specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
         check_reuse(specs, rerun=rerun, log=log)
         start_study(spec, root, runs)  # after the checks: a start refused there is no start

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..fileio import MAX_JSON_BYTES, atomic_write_bytes, fsync_directory, read_below, strict_json
+from ..fileio import MAX_JSON_BYTES, read_below, strict_json
 from ..training.rundir import RunDirectory
+from .archive import copy_run_files
 
 if TYPE_CHECKING:
     from .engine import StudyRun
@@ -104,39 +104,22 @@ def replicate(source: StudyRun, target: StudyRun, checked: StudyRun, root: Path)
     ``ValueError`` (the caller trains that seed instead) where the source is not a finished run's files or the
     target exists.
     """
-    if target.path.exists():
-        raise FileExistsError(f"{target.path} exists")
-    parent = target.path.parent
-    parent.mkdir(parents=True, exist_ok=True)
-    staging = parent / f".{target.path.name}.replica"
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir()
-    try:
-        for name in _COPIED:
-            try:
-                data = read_below(source.path, name, MAX_JSON_BYTES)
-            except FileNotFoundError:
-                if name == "config.json":
-                    raise
-                continue
-            if name in ("config.json", "config.request.json"):
-                payload = strict_json(data, source.path / name)
-                if not isinstance(payload, dict) or (name == "config.json" and not isinstance(payload.get("config"), dict)):
-                    raise ValueError(f"{source.path / name} is not a run's configuration")
-                if name == "config.json":
-                    payload["config"]["seed"] = target.seed
-                    payload[REPLICA_KEY] = {
-                        "source": os.path.relpath(source.path, root),
-                        "checked_against": os.path.relpath(checked.path, root),
-                        "why": "a seed-free controller: its first two seeds played every episode identically",
-                    }
-                else:
-                    payload["seed"] = target.seed
-                data = (json.dumps(payload, indent=2) + "\n").encode()
-            atomic_write_bytes(staging / name, data)
-        os.replace(staging, target.path)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    fsync_directory(parent)
+
+    def edit(name: str, data: bytes) -> bytes:
+        if name not in ("config.json", "config.request.json"):
+            return data
+        payload = strict_json(data, source.path / name)
+        if not isinstance(payload, dict) or (name == "config.json" and not isinstance(payload.get("config"), dict)):
+            raise ValueError(f"{source.path / name} is not a run's configuration")
+        if name == "config.json":
+            payload["config"]["seed"] = target.seed
+            payload[REPLICA_KEY] = {
+                "source": os.path.relpath(source.path, root),
+                "checked_against": os.path.relpath(checked.path, root),
+                "why": "a seed-free controller: its first two seeds played every episode identically",
+            }
+        else:
+            payload["seed"] = target.seed
+        return (json.dumps(payload, indent=2) + "\n").encode()
+
+    copy_run_files(source.path, target.path, _COPIED, edit)
