@@ -28,7 +28,7 @@ from typing import Any
 
 from ..config import ConfigError, load_yaml
 from ..training.methods import CONTROL_METHODS
-from .report import _json_line, study_report
+from .report import json_line, study_report
 from .spec import StudySpec, parse_spec
 from .stats import MIN_RUNS_FOR_VERDICT
 
@@ -140,10 +140,10 @@ def draft_confirmatory(
         *_wrapped(_question(spec, system, families, hypotheses, holdout_episodes), "  "),
         f"systems: [{spec.systems[0]}]",
         f"preset: {spec.preset or 'default'}",
-        f"seeds: {_json_line(seed_list)}",
+        f"seeds: {json_line(seed_list)}",
     ]
     if spec.imports:
-        lines.append(f"imports: {_json_line([_relative(i, folder) for i in spec.imports])}")
+        lines.append(f"imports: {json_line([_relative(i, folder) for i in spec.imports])}")
     lines += ["methods:", f"  # {spec.name}'s choices: the highest IQM of the {spec.outcome} validation return over its seeds"]
     for fam in families:
         others = ", ".join(f"{a} {v:.4g}" for a, v in fam.candidates.items() if a != fam.arm.name)
@@ -156,11 +156,11 @@ def draft_confirmatory(
             entry["overrides"] = fam.arm.overrides
         if other_list is not None and fam.name not in main:
             entry["seeds"] = other_list
-        lines.append(f"  {fam.name}: {_json_line(entry)}")
-    lines += [f"overrides: {_json_line(overrides)}", "outcome: holdout"]
+        lines.append(f"  {fam.name}: {json_line(entry)}")
+    lines += [f"overrides: {json_line(overrides)}", "outcome: holdout"]
     if thresholds:
-        lines.append(f"thresholds: {_json_line(thresholds)}")
-    lines.append(f"statistics: {_json_line({'confidence': spec.confidence, 'reps': spec.reps})}")
+        lines.append(f"thresholds: {json_line(thresholds)}")
+    lines.append(f"statistics: {json_line({'confidence': spec.confidence, 'reps': spec.reps})}")
     pairs = list(dict.fromkeys((h["better"], h["than"]) for h in hypotheses.values()))
     rl = [f.name for f in families if f.method not in CONTROL_METHODS]
     for controller in (arms["mpc"], arms["dpc"]):  # H4's pairs that are no hypothesis: compared all the same
@@ -170,7 +170,7 @@ def draft_confirmatory(
     lines.append("comparisons:")
     lines += [f"  - [{a}, {b}]" for a, b in pairs]
     lines.append("hypotheses:")
-    lines += [f"  {hid}: {_json_line(h)}" for hid, h in hypotheses.items()]
+    lines += [f"  {hid}: {json_line(h)}" for hid, h in hypotheses.items()]
     if spec.record is not None:
         record_path = _relative(str(spec.record.path.parent / f"{name}.json"), folder)
     else:
@@ -273,7 +273,7 @@ def _hypotheses(
 
 def _question(spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int) -> str:
     first = spec.tuning[families[0].name]
-    wrong = f" with the prior {_json_line(spec.overrides['model.prior'])}" if "model.prior" in spec.overrides else ""
+    wrong = f" with the prior {json_line(spec.overrides['model.prior'])}" if "model.prior" in spec.overrides else ""
     claims = "; ".join(f"{hid}: {h['claim']}" for hid, h in hypotheses.items())
     return (
         f"On {system}{wrong}, with each method's setting chosen on the validation draws by {spec.name} (equal "
