@@ -10,7 +10,7 @@ import pytest
 
 from pimbrl.cli import main
 from pimbrl.config import ConfigError
-from pimbrl.experiments.archive import ARCHIVED, archive_study, archived_runs, default_archive, restore_study
+from pimbrl.experiments.archive import ARCHIVED, archive_study, default_archive, plan_restore, restore_study
 from pimbrl.experiments.engine import plan_study, run_study
 from pimbrl.experiments.spec import load_spec
 from pimbrl.fileio import UnsafeFileError
@@ -26,9 +26,9 @@ TINY_MFRL = {
 }
 
 
-def _spec(tmp_path: Path, name: str = "s.yaml", **data) -> Path:
+def _spec(folder: Path, name: str = "s.yaml", **data) -> Path:
     body = {"name": "arch", "systems": ["pendulum"], "methods": ["mfrl"], "seeds": 2, "overrides": TINY_MFRL, **data}
-    path = tmp_path / name
+    path = folder / name
     path.write_text(json.dumps(body))
     return path
 
@@ -37,65 +37,152 @@ def _finals(record: dict) -> dict[int, float]:
     return {r["seed"]: r["final_return"] for r in record["runs"]}
 
 
+def _files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Path, dict]:
+    """A finished two-seed study (its spec's folder; the record of its first run), made once for this module."""
+    folder = tmp_path_factory.mktemp("trained")
+    spec = load_spec(_spec(folder))
+    record = run_study(spec, folder / "runs", status=False, log=lambda m: None)
+    assert len(record["runs"]) == 2 and all(r["finished"] for r in record["runs"])
+    return folder, record
+
+
+@pytest.fixture
+def study(trained, tmp_path) -> tuple:
+    """A copy of the trained study in this test's folder: (spec, spec path, run directory, first record)."""
+    folder, record = trained
+    shutil.copytree(folder, tmp_path, dirs_exist_ok=True)
+    path = tmp_path / "s.yaml"
+    return load_spec(path), path, tmp_path / "runs", record
+
+
 def test_the_default_archive_lies_beside_the_spec(tmp_path) -> None:
     spec = load_spec(_spec(tmp_path))
     assert default_archive(spec) == tmp_path / "archive" / "arch"
 
 
 @pytest.mark.slow
-def test_archived_runs_come_back_on_a_fresh_machine_and_only_the_rest_train(tmp_path, capsys) -> None:
-    path = _spec(tmp_path)
-    spec = load_spec(path)
-    root, archive = tmp_path / "runs", tmp_path / "kept"
-    first = run_study(spec, root, status=False, log=lambda m: None)
-    assert len(first["runs"]) == 2 and all(r["finished"] for r in first["runs"])
-
+def test_archived_runs_come_back_on_a_fresh_machine_and_nothing_trains(study, tmp_path) -> None:
+    spec, _, root, first = study
+    archive = tmp_path / "kept"
     runs = plan_study(spec, root)
     result = archive_study(spec, root, archive, runs)
     assert sorted(result.copied) == ["mfrl/seed0", "mfrl/seed1"] and not result.kept
     held = {p.name for p in (archive / "mfrl" / "seed0").iterdir()}
     assert "config.json" in held and "evaluations.csv" in held and held <= set(ARCHIVED)  # no checkpoint, lock or log
-    assert (archive / "study.json").is_file()
+    assert json.loads((archive / "study.json").read_text()) == json.loads((root / "study.json").read_text())
     assert archive_study(spec, root, archive, runs).kept == result.copied  # a second archive copies nothing
-    assert sorted(archived_runs(root, archive, runs)) == ["mfrl/seed0", "mfrl/seed1"]
 
-    # a fresh machine: nothing trains, the record is the same
     fresh = tmp_path / "fresh"
+    assert [r.seed for r in plan_restore(spec, fresh, archive, plan_study(spec, fresh)).runs] == [0, 1]
     logs: list[str] = []
     again = run_study(spec, fresh, archive=archive, status=False, log=logs.append)
     assert logs[0].startswith("restored 2 finished run(s) from") and "2 finished, 0 to run" in logs[1]
-    assert _finals(again) == _finals(first) and all(r["finished"] for r in again["runs"])
+    assert _finals(again) == _finals(first) and all(r["finished"] for r in again["runs"]) and not again["missing"]
     assert not (fresh / "mfrl" / "seed0" / "checkpoints").exists()
-    assert (
-        json.loads((fresh / "study.json").read_text())["first_run_started_unix"]
-        == json.loads((root / "study.json").read_text())["first_run_started_unix"]
-    )  # the archived start, not a new one
-
-    # one archived run missing, another of other settings: the first trains, the second is left out and trains
-    partial = tmp_path / "partial"
-    shutil.copytree(archive, partial)
-    shutil.rmtree(partial / "mfrl" / "seed1")
-    config = json.loads((partial / "mfrl" / "seed0" / "config.json").read_text())
-    config["config"]["total_steps"] = 40
-    (partial / "mfrl" / "seed0" / "config.json").write_text(json.dumps(config))
+    registration = json.loads((fresh / "study.json").read_text())
+    original = json.loads((root / "study.json").read_text())
+    assert registration["first_run_started_unix"] == original["first_run_started_unix"]  # the archived start
+    assert len(registration["starts"]) == len(original["starts"]) + 1  # and this one after it
     logs.clear()
-    third = run_study(spec, tmp_path / "third", archive=partial, status=False, log=logs.append)
-    assert "restored 0 finished run(s)" in logs[0] and "1 left out (mfrl/seed0: another configuration)" in logs[0]
+    run_study(spec, fresh, archive=archive, status=False, log=logs.append)  # nothing to restore: no restore line
+    assert "2 finished, 0 to run" in logs[0]
+
+
+@pytest.mark.slow
+def test_only_finished_runs_of_the_spec_s_settings_come_back_and_the_rest_train(study, tmp_path) -> None:
+    spec, _, root, first = study
+    archive = tmp_path / "kept"
+    archive_study(spec, root, archive, plan_study(spec, root))
+    config = json.loads((archive / "mfrl" / "seed0" / "config.json").read_text())
+    config["config"]["total_steps"] = 40
+    (archive / "mfrl" / "seed0" / "config.json").write_text(json.dumps(config))
+    (archive / "mfrl" / "seed1" / "evaluations.csv").unlink()  # finished, says its config; no evaluation
+    logs: list[str] = []
+    third = run_study(spec, tmp_path / "third", archive=archive, status=False, log=logs.append)
+    assert logs[0].startswith("restored 0 finished run(s)") and "2 left out (mfrl/seed0: another configuration there" in logs[0]
     assert "0 finished, 2 to run" in logs[1] and _finals(third) == _finals(first)
+    plan = plan_restore(spec, tmp_path / "fourth", archive, plan_study(spec, tmp_path / "fourth"))
+    assert plan.passed == ["mfrl/seed0: another configuration there", "mfrl/seed1: no evaluation there"]
 
-    # an archived run is never overwritten by other files
-    (root / "mfrl" / "seed1" / "episodes.csv").write_text("step,episode,return,length\n")
-    with pytest.raises(ConfigError, match="never overwritten"):
+
+@pytest.mark.slow
+def test_nothing_is_archived_when_anything_conflicts(study, tmp_path) -> None:
+    spec, _, root, _ = study
+    archive = tmp_path / "kept"
+    runs = plan_study(spec, root)
+    archive_study(spec, root, archive, runs)
+    shutil.rmtree(archive / "mfrl" / "seed0")
+    (archive / "mfrl" / "seed1" / "episodes.csv").write_text("step,episode,return,length\n")  # other files
+    before = _files(archive)
+    with pytest.raises(ConfigError, match="never overwritten and nothing was copied"):
         archive_study(spec, root, archive, runs)
+    assert _files(archive) == before  # seed0, listed first, was not copied either
 
-    # the command line: archive, then status names what waits there
-    assert main(["study", "archive", str(path), "--run-dir", str(tmp_path / "third"), "--archive", str(tmp_path / "cli")]) == 0
-    assert "archived 2 finished run(s) to" in capsys.readouterr().out
-    assert main(["study", "status", str(path), "--run-dir", str(tmp_path / "none"), "--archive", str(tmp_path / "cli")]) == 0
-    assert "2 finished run(s) wait in the archive" in capsys.readouterr().out
+    # the same study started again elsewhere without its archive: a different first start, nothing archived
+    shutil.copytree(archive, tmp_path / "clean")
+    shutil.rmtree(tmp_path / "clean" / "mfrl" / "seed1")
+    other = tmp_path / "other"
+    shutil.copytree(root, other)
+    registration = json.loads((other / "study.json").read_text())
+    registration["first_run_started_unix"] += 100
+    (other / "study.json").write_text(json.dumps(registration))
+    with pytest.raises(ConfigError, match="different first starts"):
+        archive_study(spec, other, tmp_path / "clean", plan_study(spec, other))
+    assert _files(tmp_path / "clean") == ["study.json"]
+    (other / "study.json").unlink()
+    with pytest.raises(ConfigError, match="holds no registration"):
+        archive_study(spec, other, tmp_path / "clean", plan_study(spec, other))
 
 
-def test_a_restore_refuses_links_another_studys_archive_and_another_start(tmp_path) -> None:
+@pytest.mark.slow
+def test_the_registration_keeps_every_start_and_spec_either_side_has_seen(study, tmp_path) -> None:
+    spec, _, root, _ = study
+    archive = tmp_path / "kept"
+    runs = plan_study(spec, root)
+    archive_study(spec, root, archive, runs)
+    later = tmp_path / "later"
+    restore_study(spec, later, archive, plan_study(spec, later))
+    registration = json.loads((later / "study.json").read_text())
+    registration["starts"].append({"unix": registration["starts"][-1]["unix"] + 5, "spec_sha256": "f" * 64})
+    registration["spec_sha256_seen"].append("f" * 64)  # an edited spec ran here
+    (later / "study.json").write_text(json.dumps(registration))
+    archive_study(spec, later, archive, plan_study(spec, later))
+    archive_study(spec, root, archive, runs)  # the first machine archives again: the edit is not forgotten
+    kept = json.loads((archive / "study.json").read_text())
+    assert "f" * 64 in kept["spec_sha256_seen"] and len(kept["starts"]) == len(registration["starts"])
+    restore_study(spec, root, archive, runs)  # and a restore brings the edit into a run directory without it
+    assert "f" * 64 in json.loads((root / "study.json").read_text())["spec_sha256_seen"]
+
+
+@pytest.mark.slow
+def test_a_restore_never_adopts_runs_made_outside_the_registration_nor_touches_a_run_that_exists(study, tmp_path) -> None:
+    spec, _, root, _ = study
+    archive = tmp_path / "kept"
+    archive_study(spec, root, archive, plan_study(spec, root))
+    # a run directory holding seed1 but no registration: the archive's registration would cover it
+    stray = tmp_path / "stray"
+    shutil.copytree(root / "mfrl" / "seed1", stray / "mfrl" / "seed1")
+    with pytest.raises(ConfigError, match="holds a run but its directory no registration"):
+        restore_study(spec, stray, archive, plan_study(spec, stray))
+    assert not (stray / "mfrl" / "seed0").exists() and not (stray / "study.json").exists()
+    # a damaged archived entry of a run that exists here is not even read
+    (archive / "mfrl" / "seed1" / "config.json").write_text("{not json")
+    partial = tmp_path / "partial"
+    shutil.copytree(root, partial)
+    shutil.rmtree(partial / "mfrl" / "seed0")
+    result = restore_study(spec, partial, archive, plan_study(spec, partial))
+    assert result.copied == ["mfrl/seed0"] and not result.passed
+    # where it would be restored, it is left out as unreadable (and trains)
+    plan = plan_restore(spec, tmp_path / "new", archive, plan_study(spec, tmp_path / "new"))
+    assert [r.seed for r in plan.runs] == [0] and plan.passed[0].startswith("mfrl/seed1: unreadable")
+
+
+def test_a_restore_refuses_links_another_study_s_archive_and_another_start(tmp_path) -> None:
     spec = load_spec(_spec(tmp_path))
     root, archive = tmp_path / "runs", tmp_path / "kept"
     runs = plan_study(spec, root)
@@ -113,8 +200,34 @@ def test_a_restore_refuses_links_another_studys_archive_and_another_start(tmp_pa
         restore_study(spec, root, archive, runs)
 
     (archive / "study.json").write_text(json.dumps({"study": "arch", "first_run_started_unix": 1.0}))
+    root.mkdir()
     (root / "study.json").write_text(json.dumps({"study": "arch", "first_run_started_unix": 2.0}))
-    with pytest.raises(ConfigError, match="another start of study arch"):
+    with pytest.raises(ConfigError, match="different first starts"):
         restore_study(spec, root, archive, runs)
-    with pytest.raises(ConfigError, match="another first start"):
+    with pytest.raises(ConfigError, match="different first starts"):
         archive_study(spec, root, archive, runs)
+
+
+@pytest.mark.slow
+def test_the_command_line_archives_restores_and_refuses_what_it_cannot_use(study, tmp_path, capsys, monkeypatch) -> None:
+    _, path, root, _ = study
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "archive", str(path), "--run-dir", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "archived 2 finished run(s) to archive/arch" in out and "git add archive/arch" in out  # beside the spec
+    assert main(["study", "status", str(path), "--run-dir", "fresh"]) == 0
+    assert "2 finished run(s) wait in the archive archive/arch" in capsys.readouterr().out
+    assert main(["study", "run", str(path), "--run-dir", "fresh"]) == 0
+    out = capsys.readouterr().out
+    assert "restored 2 finished run(s) from archive/arch" in out and "2 finished, 0 to run" in out
+    assert main(["study", "run", str(path), "--run-dir", "typo", "--archive", "nowhere"]) == 2
+    assert "no archive nowhere: check --archive" in capsys.readouterr().err
+    assert not (tmp_path / "typo").exists()
+    assert main(["study", "archive", str(path), "--run-dir", str(root), "--no-archive"]) == 2
+    assert "drop --no-archive" in capsys.readouterr().err
+    assert main(["study", "plan", str(path), "--archive", "archive/arch"]) == 2
+    assert "apply to study run, status and archive, not plan" in capsys.readouterr().err
+    assert main(["study", "archive", str(path), "--run-dir", str(root), "--archive", str(root / "inside")]) == 2
+    assert "lies inside the run directory" in capsys.readouterr().err
+    assert main(["study", "status", str(path), "--run-dir", "fresh", "--no-archive"]) == 0
+    assert "archive" not in capsys.readouterr().out

@@ -489,21 +489,52 @@ def _study_run_dir(spec_path: str, spec_name: str, given: str | None) -> Path:
 
 
 def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> None:
-    from .experiments.archive import archived_runs
+    from .experiments.archive import plan_restore
     from .experiments.engine import plan_study
     from .experiments.progress import progress_lines, study_progress
 
-    kept = archived_runs(root, archive, plan_study(spec, root)) if archive is not None and archive.is_dir() else []
-    waiting = [r for r in kept if not (root / r).exists()]
-    note = f"{len(waiting)} finished run(s) wait in the archive {archive}: `pimbrl study run` copies them back first"
+    notes = []
+    if archive is not None and archive.is_dir():
+        plan = plan_restore(spec, root, archive, plan_study(spec, root))
+        if plan.refusal is not None:
+            notes.append(f"the archive {archive} is not restored here: {plan.refusal}")
+        elif plan.runs or plan.passed:
+            notes.append(
+                f"{len(plan.runs)} finished run(s) wait in the archive {archive} for `pimbrl study run` to copy them back"
+                + (f"; {len(plan.passed)} left out there ({plan.passed[0]})" if plan.passed else "")
+            )
     if not root.is_dir():
         print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
-        if waiting:
-            print(note)
-        return
-    print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
-    if waiting:
-        print(note)
+    else:
+        print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
+    for line in notes:
+        print(line)
+
+
+def _study_archive(args: argparse.Namespace, spec: Any) -> Path | None:
+    """The archive a `pimbrl study` action reads or writes (``None``: none), after checking the flags."""
+    from .experiments.archive import default_archive
+
+    if args.archive is not None and args.no_archive:
+        raise ValueError("give --archive DIR or --no-archive, not both")
+    if args.action not in ("run", "status", "archive"):
+        if args.archive is not None or args.no_archive:
+            raise ValueError(f"--archive and --no-archive apply to study run, status and archive, not {args.action}")
+        return None
+    if args.no_archive:
+        if args.action == "archive":
+            raise ValueError("`pimbrl study archive` writes an archive: drop --no-archive")
+        return None
+    if args.archive is None:
+        found = default_archive(spec)
+        near = os.path.relpath(found)  # shorter in messages, where it lies below the working directory
+        return found if near.startswith("..") else Path(near)
+    archive = Path(args.archive)
+    if args.action != "archive" and not archive.is_dir():
+        raise ValueError(
+            f"no archive {archive}: check --archive, or drop it to use {default_archive(spec)} (the one beside the spec)"
+        )
+    return archive
 
 
 def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
@@ -534,7 +565,6 @@ def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
-    from .experiments.archive import default_archive
     from .experiments.engine import plan_study, run_study
     from .experiments.report import load_record, study_report, write_pages
     from .experiments.spec import load_spec
@@ -557,7 +587,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
             if i:
                 print()
             each = load_spec(path)
-            kept = None if args.no_archive else default_archive(each)
+            kept = _study_archive(args, each)
             _study_status(each, _study_run_dir(path, each.name, None), args.jobs, kept)
         return 0
     if len(args.specs) != 1:
@@ -566,7 +596,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         )
     spec = load_spec(args.specs[0])
     root = _study_run_dir(args.specs[0], spec.name, args.run_dir)
-    archive = Path(args.archive) if args.archive else default_archive(spec)
+    archive = _study_archive(args, spec)
     if args.action == "plan":
         runs = plan_study(spec, root)
         for r in runs:
@@ -574,13 +604,19 @@ def _cmd_study(args: argparse.Namespace) -> int:
         print(f"{len(runs)} runs of study {spec.name} ({spec.kind}); plan: {spec.plan or 'not stated in the spec'}")
         return 0
     if args.action == "status":
-        _study_status(spec, root, args.jobs, None if args.no_archive else archive)
+        _study_status(spec, root, args.jobs, archive)
         return 0
     if args.action == "draft":
         return _study_draft(args, spec, root)
     if args.action == "archive":
         from .experiments.archive import archive_study
 
+        assert archive is not None
+        if archive.resolve().is_relative_to(root.resolve()):
+            raise ValueError(
+                f"the archive {archive} lies inside the run directory {root}, which does not outlive the machine: give "
+                "--archive DIR outside it"
+            )
         result = archive_study(spec, root, archive, plan_study(spec, root))
         print(result.line("archived", archive) + f" (commit it to keep it: git add {archive})")
         return 0
@@ -588,7 +624,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         _check_run_dir(str(root))
         record = run_study(
             spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun,
-            replicas=not args.no_replicas, archive=None if args.no_archive else archive, log=log,
+            replicas=not args.no_replicas, archive=archive, log=log,
         )  # fmt: skip
         print(f"study {spec.name}: {len(record['runs'])} runs recorded in {root / 'record.json'}")
         if record["failed"]:

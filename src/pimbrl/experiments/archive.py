@@ -5,18 +5,22 @@ run is a few kilobytes of JSON and CSV (:data:`ARCHIVED`). ``pimbrl study archiv
 files of every finished run, and the study's registration (``study.json``), into the study's archive
 (default: ``archive/<study name>`` beside the spec), laid out as the run directory is. Committed, the
 archive survives the session; on a fresh machine ``pimbrl study run SPEC`` copies each archived run back
-into its run directory before it looks at what is missing, so only the unfinished runs train again.
+into its run directory before it starts, so that only the unfinished runs train again.
 
-Nothing is trusted that the archive cannot show: a run comes back only where the archive holds a
-finished run of exactly the spec's configuration, and only into a directory that does not exist yet (a
-run on this machine is never replaced). Every file is read without following a link and within its size
-bound, JSON is parsed strictly, no checkpoint is kept or read, and each run is assembled beside its target
-and renamed into place, so an interrupted copy leaves no half-made run. A restored run has no
-checkpoint: it can be reported, not resumed or evaluated again.
+Nothing is trusted that the archive cannot show. A run is archived, and comes back, only where it is a
+finished run with evaluations, of exactly the spec's configuration, and only into a directory that does
+not exist yet (a run on this machine is never replaced). An archived run is never overwritten by other
+files. The registration keeps the study's one first start: the archive's and the run directory's are
+merged (every start and every spec SHA-256 either has seen), and where they record different first starts,
+or where a run directory holds runs but no registration, nothing is copied either way. Every file is read
+without following a link and within its size bound, no checkpoint is kept or read, and each run is
+assembled beside its target and renamed into place, so an interrupted copy leaves no half-made run. A
+restored run has no checkpoint: it can be reported, not resumed or evaluated again.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from collections.abc import Callable, Sequence
@@ -34,7 +38,15 @@ if TYPE_CHECKING:
     from .engine import StudyRun
     from .spec import StudySpec
 
-__all__ = ["ARCHIVED", "ArchiveResult", "archive_study", "archived_runs", "copy_run_files", "default_archive", "restore_study"]
+__all__ = [
+    "ARCHIVED",
+    "ArchiveResult",
+    "archive_study",
+    "copy_run_files",
+    "default_archive",
+    "plan_restore",
+    "restore_study",
+]
 
 #: a finished run's files that the archive keeps (the record and report read no others); no checkpoint
 ARCHIVED = (
@@ -48,6 +60,8 @@ ARCHIVED = (
     "control.json",
     "holdout.json",
 )
+#: the suffix of a run being assembled beside its target
+STAGING = ".copying"
 
 
 def _bound(name: str) -> int:
@@ -79,7 +93,7 @@ def copy_run_files(
         raise FileExistsError(f"{target} exists")
     parent = target.parent
     parent.mkdir(parents=True, exist_ok=True)
-    staging = parent / f".{target.name}.copying"
+    staging = parent / f".{target.name}{STAGING}"
     if os.path.lexists(staging):
         shutil.rmtree(staging)
     staging.mkdir()
@@ -120,15 +134,89 @@ class ArchiveResult:
         return text
 
 
-def _read_config(directory: Path) -> dict[str, Any] | None:
-    """A run directory's ``config.json`` as a mapping, ``None`` where it has none."""
+# ------------------------------------------------------------------ registration
+def _registration(folder: Path, spec: StudySpec) -> dict[str, Any] | None:
+    """The registration ``folder`` holds (``None`` without one); another study's is a :class:`ConfigError`."""
     try:
-        payload = strict_json(read_below(directory, "config.json", MAX_JSON_BYTES), directory / "config.json")
+        value = strict_json(read_below(folder, REGISTRATION_FILE, MAX_JSON_BYTES), folder / REGISTRATION_FILE)
     except FileNotFoundError:
         return None
-    if not isinstance(payload, dict) or not isinstance(payload.get("config"), dict):
-        raise ValueError(f"{directory / 'config.json'} is not a run's configuration")
-    return payload
+    if not isinstance(value, dict) or value.get("study") != spec.name:
+        raise ConfigError(
+            f"{folder / REGISTRATION_FILE} is not the registration of study {spec.name}: give the study its own "
+            "--run-dir and --archive"
+        )
+    return value
+
+
+def _merged(a: dict[str, Any], b: dict[str, Any], a_where: Path, b_where: Path) -> dict[str, Any]:
+    """One registration holding every start and spec SHA-256 of two of the same first start; else a ConfigError."""
+    if a.get("first_run_started_unix") != b.get("first_run_started_unix") or a.get("registered") != b.get("registered"):
+        raise ConfigError(
+            f"{a_where} and {b_where} record different first starts of study {a.get('study')} (it was started again "
+            "without its archive): nothing is copied; restore the archive into a new --run-dir, or archive into a new "
+            "--archive"
+        )
+    starts: dict[str, Any] = {}
+    for start in [*a.get("starts", []), *b.get("starts", [])]:
+        starts.setdefault(json.dumps(start, sort_keys=True), start)
+    seen = list(dict.fromkeys([*a.get("spec_sha256_seen", []), *b.get("spec_sha256_seen", [])]))
+    ordered = sorted(starts.values(), key=lambda s: s.get("unix", 0) if isinstance(s, dict) else 0)
+    return {**a, "starts": ordered, "spec_sha256_seen": seen}
+
+
+def _write_registration(folder: Path, value: dict[str, Any]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(folder / REGISTRATION_FILE, (json.dumps(value, indent=1) + "\n").encode())
+
+
+# ------------------------------------------------------------------ reading a run
+def _finished_run(directory: Path, run: StudyRun) -> str | None:
+    """``None`` where ``directory`` holds a finished run of ``run``'s configuration with evaluations; else why not.
+
+    A link or another special file there is an :class:`~pimbrl.fileio.UnsafeFileError` (never followed); a
+    damaged file is a reason ("unreadable").
+    """
+    for name in ARCHIVED:
+        check_below(directory, name)
+    rd = RunDirectory(directory)
+    try:
+        payload = rd.read_config()
+        result = rd.result()
+    except FileNotFoundError:
+        return "no config.json"
+    except ValueError as exc:
+        return f"unreadable ({str(exc).splitlines()[0]})"
+    if payload.get("status") != "finished" or rd.holder() is not None:
+        return "not finished"
+    if result is None:
+        return "no evaluation"
+    if config_differences(payload.get("config"), run.config):
+        return "another configuration"
+    return None
+
+
+def _lock(archive: Path) -> int:
+    """An exclusive lock of the archive folder (the OS's, on the folder itself: no lock file to commit)."""
+    import fcntl
+
+    archive.mkdir(parents=True, exist_ok=True)
+    fd = os.open(archive, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise ConfigError(f"another pimbrl process is writing the archive {archive}; wait for it to end") from None
+    return fd
+
+
+def _remove_staging(archive: Path) -> None:
+    """Folders a killed copy left half-made in the archive (never committed as runs)."""
+    for folder, dirs, _ in os.walk(archive):
+        for name in list(dirs):
+            if name.startswith(".") and name.endswith(STAGING):
+                shutil.rmtree(Path(folder) / name, ignore_errors=True)
+                dirs.remove(name)
 
 
 def _same_files(a: Path, b: Path) -> bool:
@@ -147,118 +235,127 @@ def _same_files(a: Path, b: Path) -> bool:
     return True
 
 
+# ------------------------------------------------------------------ archive and restore
 def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun]) -> ArchiveResult:
     """Copy every finished run of ``runs`` (``spec``'s, planned in ``root``), and its registration, into ``archive``.
 
-    Safe while the study runs: a run counts only when finished and held by no process. A run already in
-    the archive with the same files is kept; one with other files is a :class:`ConfigError` (an archived run
-    is never overwritten: remove it from the archive first, if the new one is meant to replace it).
+    Safe while the study runs: a run counts only when finished and held by no process. Everything is checked
+    before anything is copied: the run directory's registration (it must be there, of this study, and of the
+    archive's first start), and every run already in the archive (the same files, else a
+    :class:`ConfigError`: an archived run is never overwritten; remove it from the archive first if the new run
+    replaces it). The two registrations are then merged into the archive.
     """
     root, archive = Path(root), Path(archive)
     if not root.is_dir():
         raise ConfigError(f"study {spec.name}: no run directory {root} (give --run-dir, or run the study first)")
-    result = ArchiveResult()
-    for run in runs:
-        rel = str(run.path.relative_to(root))
-        rd = RunDirectory(run.path)
-        if rd.status != "finished" or rd.holder() is not None:
-            continue
-        payload = _read_config(run.path)
-        diffs = config_differences(payload.get("config") if payload else None, run.config)
-        if diffs:
-            result.passed.append(f"{rel}: another configuration")
-            continue
-        target = archive / rel
-        check_below(archive, rel, "directory")  # no link on the way into the archive
-        if target.exists():
-            if not _same_files(run.path, target):
+    here = _registration(root, spec)
+    if here is None:
+        raise ConfigError(
+            f"{root} holds no registration of study {spec.name} (no {REGISTRATION_FILE}): only runs made by `pimbrl study "
+            "run` are archived"
+        )
+    fd = _lock(archive)
+    try:
+        _remove_staging(archive)
+        kept = _registration(archive, spec)
+        registration = here if kept is None else _merged(kept, here, archive / REGISTRATION_FILE, root / REGISTRATION_FILE)
+        result = ArchiveResult()
+        todo = []
+        for run in runs:
+            rel = str(run.path.relative_to(root))
+            if not run.path.is_dir() or _finished_run(run.path, run) is not None:
+                continue
+            target = archive / rel
+            check_below(archive, rel, "directory")  # no link on the way into the archive
+            if not target.exists():
+                todo.append((run, rel))
+            elif _same_files(run.path, target):
+                result.kept.append(rel)
+            else:
                 raise ConfigError(
                     f"{target} holds other files than the finished run {run.path}; an archived run is never overwritten "
-                    "(remove it from the archive first if the new run replaces it)"
+                    "and nothing was copied (remove it from the archive first if the new run replaces it)"
                 )
-            result.kept.append(rel)
-            continue
-        copy_run_files(run.path, target)
-        result.copied.append(rel)
-    if (root / REGISTRATION_FILE).exists():
-        data = read_below(root, REGISTRATION_FILE, MAX_JSON_BYTES)
-        here = strict_json(data, root / REGISTRATION_FILE)
-        kept = _registration(archive, spec)
-        first = here.get("first_run_started_unix") if isinstance(here, dict) else None
-        if kept is not None and kept.get("first_run_started_unix") != first:
-            raise ConfigError(
-                f"{archive / REGISTRATION_FILE} records another first start of study {spec.name} than {root / REGISTRATION_FILE} "
-                "(the study was started here without its archive); archive into a new --archive, or restore the archive "
-                "into a new --run-dir"
-            )
-        archive.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(archive / REGISTRATION_FILE, data)
+        for run, rel in todo:
+            copy_run_files(run.path, archive / rel)
+            result.copied.append(rel)
+        _write_registration(archive, registration)
+    finally:
+        os.close(fd)
     return result
 
 
-def _registration(archive: Path, spec: StudySpec) -> dict[str, Any] | None:
-    """The registration the archive holds (``None`` without one); another study's is a :class:`ConfigError`."""
-    try:
-        value = strict_json(read_below(archive, REGISTRATION_FILE, MAX_JSON_BYTES), archive / REGISTRATION_FILE)
-    except FileNotFoundError:
-        return None
-    if not isinstance(value, dict) or value.get("study") != spec.name:
-        raise ConfigError(f"{archive / REGISTRATION_FILE} is not the registration of study {spec.name}; check --archive")
-    return value
+@dataclass
+class RestorePlan:
+    """What :func:`restore_study` would do: the runs to copy back, those left out, and the registration to write."""
+
+    runs: list[StudyRun] = field(default_factory=list)
+    passed: list[str] = field(default_factory=list)
+    registration: dict[str, Any] | None = None  # to write into the run directory (``None``: leave it)
+    refusal: str | None = None  # why nothing can be restored into this run directory
 
 
-def archived_runs(root: str | Path, archive: str | Path, runs: Sequence[StudyRun]) -> list[str]:
-    """The runs of ``runs`` (planned in ``root``) that ``archive`` holds finished, of their configuration (paths below it)."""
+def plan_restore(spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun]) -> RestorePlan:
+    """Which archived runs of ``runs`` would come back into ``root`` (nothing is written).
+
+    A run that exists in ``root`` is not looked at. An archived run comes back where it is finished, has
+    evaluations and is of the run's configuration; otherwise it is left out with the reason (and trains). A
+    refusal (with nothing restored) where ``root`` holds another first start of the study, or runs but no
+    registration (the archive's registration would then cover runs it never saw).
+    """
     root, archive = Path(root), Path(archive)
+    plan = RestorePlan()
     if not archive.is_dir():
-        return []
-    out = []
+        return plan
+    kept = _registration(archive, spec)
     for run in runs:
-        rel = str(run.path.relative_to(root))
-        try:
-            check_below(archive, rel, "directory")
-            payload = _read_config(archive / rel)
-        except (OSError, ValueError):
+        if os.path.lexists(run.path):
             continue
-        if payload is not None and payload.get("status") == "finished" and not config_differences(payload["config"], run.config):
-            out.append(rel)
-    return out
+        rel = str(run.path.relative_to(root))
+        if check_below(archive, rel, "directory") is None:
+            continue
+        why = _finished_run(archive / rel, run)
+        if why is None:
+            plan.runs.append(run)
+        elif why != "no config.json":
+            plan.passed.append(f"{rel}: {why} there")
+    if kept is None:
+        return plan
+    here = _registration(root, spec) if root.is_dir() else None
+    if here is None:
+        made = [str(r.path) for r in runs if os.path.lexists(r.path / "config.json")]
+        if made:
+            plan.refusal = (
+                f"{made[0]} holds a run but its directory no registration of study {spec.name}: the archive's "
+                "registration would cover runs it never saw; give a new --run-dir (the archive's runs come back into "
+                "it), or --no-archive"
+            )
+        else:
+            plan.registration = kept
+        return plan
+    try:
+        merged = _merged(here, kept, root / REGISTRATION_FILE, archive / REGISTRATION_FILE)
+    except ConfigError as exc:
+        plan.refusal = str(exc)
+        return plan
+    plan.registration = merged if merged != here else None
+    return plan
 
 
 def restore_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun]) -> ArchiveResult:
-    """Copy each archived finished run of ``spec`` whose directory in ``root`` does not exist back into ``root``.
+    """Copy each archived finished run of ``runs`` whose directory in ``root`` does not exist back into ``root``.
 
-    The archive's registration comes first, where ``root`` has none (a confirmatory study's start is then
-    the archived one, not a new registration). A run the archive holds with another configuration, or not
-    finished, stays out (named in :attr:`ArchiveResult.passed`); a run that exists here is never touched.
+    The archive's registration comes first (merged with one ``root`` holds), so a confirmatory study keeps its
+    archived first start. :func:`plan_restore` decides; its refusal is a :class:`ConfigError`.
     """
     root, archive = Path(root), Path(archive)
-    result = ArchiveResult()
-    if not archive.is_dir():
-        return result
-    registration = _registration(archive, spec)
-    root.mkdir(parents=True, exist_ok=True)
-    if registration is not None and not (root / REGISTRATION_FILE).exists():
-        atomic_write_bytes(root / REGISTRATION_FILE, read_below(archive, REGISTRATION_FILE, MAX_JSON_BYTES))
-    elif registration is not None:
-        here = strict_json(read_below(root, REGISTRATION_FILE, MAX_JSON_BYTES), root / REGISTRATION_FILE)
-        if not isinstance(here, dict) or here.get("first_run_started_unix") != registration.get("first_run_started_unix"):
-            raise ConfigError(
-                f"{root} holds another start of study {spec.name} than its archive {archive}: its archived runs are not "
-                "restored there; give the study a new --run-dir (the archive's runs come back into it), or --no-archive"
-            )
-    for run in runs:
-        rel = str(run.path.relative_to(root))
-        check_below(archive, rel, "directory")
-        payload = _read_config(archive / rel) if (archive / rel).is_dir() else None
-        if payload is None or os.path.lexists(run.path):
-            continue
-        if payload.get("status") != "finished":
-            result.passed.append(f"{rel}: not finished there")
-            continue
-        if config_differences(payload["config"], run.config):
-            result.passed.append(f"{rel}: another configuration")
-            continue
-        copy_run_files(archive / rel, run.path)
-        result.copied.append(rel)
+    plan = plan_restore(spec, root, archive, runs)
+    if plan.refusal is not None:
+        raise ConfigError(plan.refusal)
+    result = ArchiveResult(passed=list(plan.passed))
+    if plan.registration is not None:
+        _write_registration(root, plan.registration)
+    for run in plan.runs:
+        copy_run_files(archive / run.path.relative_to(root), run.path)
+        result.copied.append(str(run.path.relative_to(root)))
     return result

@@ -223,7 +223,7 @@ def run_study(
     they stand. ``replicas``: a seed-free controller's arm runs two seeds and copies the first into the others
     where the two agree on every episode (:mod:`.replicas`). A confirmatory spec must be committed before its
     first run (:mod:`.registration`). ``archive``: a folder of the study's finished runs (:mod:`.archive`); each
-    one whose directory does not exist here is copied back first, so that only the rest train.
+    one whose directory does not exist here is copied back before the start, so that only the rest train.
     """
     from .archive import restore_study
     from .registration import start_study
@@ -246,10 +246,12 @@ def run_study(
     root.mkdir(parents=True, exist_ok=True)
     lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
     try:
-        if archive is not None and Path(archive).is_dir():
-            log(restore_study(spec, root, archive, runs).line("restored", Path(archive)))
         specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
         check_reuse(specs, rerun=rerun, log=log)
+        if archive is not None:  # after --rerun moved runs aside: their archived copies come back
+            restored = restore_study(spec, root, archive, runs)
+            if restored.copied or restored.passed:
+                log(restored.line("restored", Path(archive)))
         start_study(spec, root, runs)  # after the checks: a start refused there is no start
         if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
             atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
