@@ -231,3 +231,12 @@ def test_the_command_line_archives_restores_and_refuses_what_it_cannot_use(study
     assert "lies inside the run directory" in capsys.readouterr().err
     assert main(["study", "status", str(path), "--run-dir", "fresh", "--no-archive"]) == 0
     assert "archive" not in capsys.readouterr().out
+
+
+def test_the_reproduce_page_trains_an_archived_study_again(tmp_path) -> None:
+    from pimbrl.experiments.report import _run_command
+
+    spec = load_spec(_spec(tmp_path))
+    assert not _run_command(spec, tmp_path).endswith("--no-archive")
+    default_archive(spec).mkdir(parents=True)
+    assert _run_command(spec, tmp_path) == "pimbrl study run s.yaml --run-dir runs/arch --no-archive"

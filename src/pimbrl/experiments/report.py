@@ -772,7 +772,9 @@ def write_pages(
         "`pimbrl study run SPEC --run-dir DIR` (resumable: run it again after an interruption) and its tables come "
         "from `pimbrl study report SPEC --run-dir DIR`; a study recorded before the engine names the command that "
         "made its record. Results are bit for bit only on one CPU model: on another machine expect other figures, "
-        "within the spread over seeds.",
+        "within the spread over seeds. Where a study's finished runs are archived beside its spec (`archive/<name>`, "
+        "kept so that a study can span machines), `study run` restores them instead of training them: the commands "
+        "below say `--no-archive`, so that every run trains again.",
         "",
     ]
     if preamble:
@@ -808,8 +810,11 @@ def write_pages(
 
 
 def _run_command(spec: StudySpec, root: Path) -> str:
-    """The command that runs ``spec`` from ``root`` (the repository) into ``runs/<name>``."""
-    return f"pimbrl study run {_spec_path(spec, root)} --run-dir runs/{spec.name}"
+    """The command that runs ``spec`` from ``root`` (the repository) into ``runs/<name>``, every run trained again."""
+    from .archive import default_archive
+
+    again = " --no-archive" if default_archive(spec).is_dir() else ""
+    return f"pimbrl study run {_spec_path(spec, root)} --run-dir runs/{spec.name}{again}"
 
 
 def _spec_path(spec: StudySpec, root: Path | None) -> str:
