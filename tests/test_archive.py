@@ -167,7 +167,7 @@ def test_a_restore_never_adopts_runs_made_outside_the_registration_nor_touches_a
     # a run directory holding seed1 but no registration: the archive's registration would cover it
     stray = tmp_path / "stray"
     shutil.copytree(root / "mfrl" / "seed1", stray / "mfrl" / "seed1")
-    with pytest.raises(ConfigError, match="holds a run but its directory no registration"):
+    with pytest.raises(ConfigError, match="holds a run but its run directory holds no registration"):
         restore_study(spec, stray, archive, plan_study(spec, stray))
     assert not (stray / "mfrl" / "seed0").exists() and not (stray / "study.json").exists()
     # a damaged archived entry of a run that exists here is not even read
@@ -188,6 +188,7 @@ def test_a_restore_refuses_links_another_study_s_archive_and_another_start(tmp_p
     runs = plan_study(spec, root)
     seed0 = archive / "mfrl" / "seed0"
     seed0.mkdir(parents=True)
+    (archive / "study.json").write_text(json.dumps({"study": "arch", "first_run_started_unix": 1.0}))
     (tmp_path / "elsewhere.json").write_text("{}")
     (seed0 / "config.json").symlink_to(tmp_path / "elsewhere.json")
     with pytest.raises(UnsafeFileError, match="link"):
@@ -228,7 +229,7 @@ def test_the_command_line_archives_restores_and_refuses_what_it_cannot_use(study
     assert main(["study", "plan", str(path), "--archive", "archive/arch"]) == 2
     assert "apply to study run, status and archive, not plan" in capsys.readouterr().err
     assert main(["study", "archive", str(path), "--run-dir", str(root), "--archive", str(root / "inside")]) == 2
-    assert "lies inside the run directory" in capsys.readouterr().err
+    assert "lie one inside the other" in capsys.readouterr().err
     assert main(["study", "status", str(path), "--run-dir", "fresh", "--no-archive"]) == 0
     assert "archive" not in capsys.readouterr().out
 
@@ -240,3 +241,72 @@ def test_the_reproduce_page_trains_an_archived_study_again(tmp_path) -> None:
     assert not _run_command(spec, tmp_path).endswith("--no-archive")
     default_archive(spec).mkdir(parents=True)
     assert _run_command(spec, tmp_path) == "pimbrl study run s.yaml --run-dir runs/arch --no-archive"
+
+
+@pytest.mark.slow
+def test_an_archive_with_runs_but_no_registration_is_neither_restored_nor_added_to(study, tmp_path, monkeypatch) -> None:
+    from pimbrl.experiments import archive as archive_module
+
+    spec, _, root, _ = study
+    archive = tmp_path / "kept"
+    runs = plan_study(spec, root)
+    calls = []
+
+    def dying_copy(source, target, *args):  # the process dies while it copies the second run
+        calls.append(target)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return copy(source, target, *args)
+
+    copy = archive_module.copy_run_files
+    monkeypatch.setattr(archive_module, "copy_run_files", dying_copy)
+    with pytest.raises(KeyboardInterrupt):
+        archive_study(spec, root, archive, runs)
+    monkeypatch.undo()
+    assert (archive / "study.json").is_file() and _files(archive / "mfrl") == sorted(
+        f"seed0/{p.name}" for p in (archive / "mfrl" / "seed0").iterdir()
+    )  # the registration came first; the second run is not half there
+    (archive / "study.json").unlink()  # an archive whose start is unknown
+    fresh = tmp_path / "fresh"
+    with pytest.raises(ConfigError, match="holds no registration \\(its start is unknown\\)"):
+        run_study(spec, fresh, archive=archive, status=False, log=lambda m: None)
+    assert not (fresh / "mfrl").exists()
+    with pytest.raises(ConfigError, match="holds no registration \\(its start is unknown\\)"):
+        archive_study(spec, root, archive, runs)
+
+
+@pytest.mark.slow
+def test_rerun_moves_nothing_when_the_archive_is_refused_and_gets_archived_copies_back(study, tmp_path) -> None:
+    spec, _, root, _ = study
+    archive = tmp_path / "kept"
+    archive_study(spec, root, archive, plan_study(spec, root))
+    stale = tmp_path / "stale"
+    shutil.copytree(root, stale)
+    config = json.loads((stale / "mfrl" / "seed0" / "config.json").read_text())
+    config["config"]["total_steps"] = 40  # a run of other settings, which --rerun moves aside
+    (stale / "mfrl" / "seed0" / "config.json").write_text(json.dumps(config))
+    registration = json.loads((stale / "study.json").read_text())
+    (stale / "study.json").write_text(json.dumps({**registration, "first_run_started_unix": 1.0}))
+    with pytest.raises(ConfigError, match="different first starts"):
+        run_study(spec, stale, archive=archive, rerun=True, status=False, log=lambda m: None)
+    assert sorted(p.name for p in (stale / "mfrl").iterdir()) == ["seed0", "seed1"]  # nothing moved aside
+    (stale / "study.json").write_text(json.dumps(registration))
+    logs: list[str] = []
+    run_study(spec, stale, archive=archive, rerun=True, status=False, log=logs.append)
+    assert any(line.startswith("restored 1 finished run(s)") for line in logs) and "2 finished, 0 to run" in logs[-1]
+
+
+def test_archiving_into_another_study_s_folder_removes_nothing_there(tmp_path) -> None:
+    spec = load_spec(_spec(tmp_path))
+    root, elsewhere = tmp_path / "runs", tmp_path / "elsewhere"
+    root.mkdir()
+    (root / "study.json").write_text(json.dumps({"study": "arch", "first_run_started_unix": 1.0}))
+    (elsewhere / "mfrl" / ".seed0.copying").mkdir(parents=True)
+    (elsewhere / "study.json").write_text(json.dumps({"study": "another", "first_run_started_unix": 1.0}))
+    with pytest.raises(ConfigError, match="not the registration of study arch"):
+        archive_study(spec, root, elsewhere, plan_study(spec, root))
+    assert (elsewhere / "mfrl" / ".seed0.copying").is_dir()
+    (root / "study.json").write_text(json.dumps({"study": "arch"}))
+    with pytest.raises(ConfigError, match="records no first start"):
+        archive_study(spec, root, tmp_path / "new", plan_study(spec, root))
+    assert not (tmp_path / "new").exists()  # a refused first archive leaves no folder

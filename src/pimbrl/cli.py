@@ -528,8 +528,13 @@ def _study_archive(args: argparse.Namespace, spec: Any) -> Path | None:
     if args.archive is None:
         found = default_archive(spec)
         near = os.path.relpath(found)  # shorter in messages, where it lies below the working directory
-        return found if near.startswith("..") else Path(near)
+        archive = found if near.startswith("..") else Path(near)
+        if archive.exists() and not archive.is_dir():
+            raise ValueError(f"{archive}, the archive beside the spec, is not a folder: move it away, or give --archive DIR")
+        return archive
     archive = Path(args.archive)
+    if archive.exists() and not archive.is_dir():
+        raise ValueError(f"--archive {archive} is not a folder: give the archive's folder")
     if args.action != "archive" and not archive.is_dir():
         raise ValueError(
             f"no archive {archive}: check --archive, or drop it to use {default_archive(spec)} (the one beside the spec)"
@@ -571,6 +576,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
 
     log = lambda m: print(m, flush=True)
     if args.action == "report" and args.pages:
+        if args.archive is not None or args.no_archive:
+            raise ValueError("--archive and --no-archive apply to study run, status and archive, not report")
         specs = [load_spec(p) for p in args.specs]
         folders = dict.fromkeys(Path(p).resolve().parent for p in args.specs)  # the first holding the hand-written part
         header = next((f / "_reproduce.md" for f in folders if (f / "_reproduce.md").is_file()), None)
@@ -612,10 +619,11 @@ def _cmd_study(args: argparse.Namespace) -> int:
         from .experiments.archive import archive_study
 
         assert archive is not None
-        if archive.resolve().is_relative_to(root.resolve()):
+        inner, outer = archive.resolve(), root.resolve()
+        if inner.is_relative_to(outer) or outer.is_relative_to(inner):
             raise ValueError(
-                f"the archive {archive} lies inside the run directory {root}, which does not outlive the machine: give "
-                "--archive DIR outside it"
+                f"the archive {archive} and the run directory {root} lie one inside the other (the run directory does not "
+                "outlive the machine, and an archive holds no checkpoint): give --archive DIR apart from it"
             )
         result = archive_study(spec, root, archive, plan_study(spec, root))
         print(result.line("archived", archive) + f" (commit it to keep it: git add {archive})")

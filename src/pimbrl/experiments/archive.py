@@ -137,16 +137,34 @@ class ArchiveResult:
 # ------------------------------------------------------------------ registration
 def _registration(folder: Path, spec: StudySpec) -> dict[str, Any] | None:
     """The registration ``folder`` holds (``None`` without one); another study's is a :class:`ConfigError`."""
+    path = folder / REGISTRATION_FILE
     try:
-        value = strict_json(read_below(folder, REGISTRATION_FILE, MAX_JSON_BYTES), folder / REGISTRATION_FILE)
+        value = strict_json(read_below(folder, REGISTRATION_FILE, MAX_JSON_BYTES), path)
     except FileNotFoundError:
         return None
-    if not isinstance(value, dict) or value.get("study") != spec.name:
+    except ValueError as exc:  # a link, a FIFO, damaged JSON
         raise ConfigError(
-            f"{folder / REGISTRATION_FILE} is not the registration of study {spec.name}: give the study its own "
-            "--run-dir and --archive"
+            f"{str(exc).splitlines()[0]}; restore {path} (git checkout, if it is committed) or leave the archive out "
+            "(--no-archive)"
+        ) from None
+    if not isinstance(value, dict) or value.get("study") != spec.name:
+        raise ConfigError(f"{path} is not the registration of study {spec.name}: give the study its own --run-dir and --archive")
+    if not isinstance(value.get("first_run_started_unix"), (int, float)):
+        raise ConfigError(
+            f"{path} records no first start of study {spec.name}: it is not a registration `pimbrl study run` wrote; "
+            "restore it (git checkout) or leave the archive out (--no-archive)"
         )
     return value
+
+
+def _unregistered(archive: Path, runs: Sequence[StudyRun], root: Path) -> str | None:
+    """A run ``archive`` holds though it has no registration (its start unknown), else ``None``."""
+    if os.path.lexists(archive / REGISTRATION_FILE):
+        return None
+    for run in runs:
+        if os.path.lexists(archive / run.path.relative_to(root)):
+            return str(archive / run.path.relative_to(root))
+    return None
 
 
 def _merged(a: dict[str, Any], b: dict[str, Any], a_where: Path, b_where: Path) -> dict[str, Any]:
@@ -162,7 +180,7 @@ def _merged(a: dict[str, Any], b: dict[str, Any], a_where: Path, b_where: Path) 
         starts.setdefault(json.dumps(start, sort_keys=True), start)
     seen = list(dict.fromkeys([*a.get("spec_sha256_seen", []), *b.get("spec_sha256_seen", [])]))
     ordered = sorted(starts.values(), key=lambda s: s.get("unix", 0) if isinstance(s, dict) else 0)
-    return {**a, "starts": ordered, "spec_sha256_seen": seen}
+    return {**b, **a, "starts": ordered, "spec_sha256_seen": seen}
 
 
 def _write_registration(folder: Path, value: dict[str, Any]) -> None:
@@ -210,13 +228,13 @@ def _lock(archive: Path) -> int:
     return fd
 
 
-def _remove_staging(archive: Path) -> None:
-    """Folders a killed copy left half-made in the archive (never committed as runs)."""
-    for folder, dirs, _ in os.walk(archive):
-        for name in list(dirs):
-            if name.startswith(".") and name.endswith(STAGING):
-                shutil.rmtree(Path(folder) / name, ignore_errors=True)
-                dirs.remove(name)
+def _remove_staging(archive: Path, runs: Sequence[StudyRun], root: Path) -> None:
+    """The folders a killed copy left half-made beside the planned runs' places in the archive (nothing else)."""
+    for run in runs:
+        rel = run.path.relative_to(root)
+        staging = archive / rel.parent / f".{rel.name}{STAGING}"
+        if check_below(archive, staging.relative_to(archive), "directory") is not None:
+            shutil.rmtree(staging)
 
 
 def _same_files(a: Path, b: Path) -> bool:
@@ -252,13 +270,24 @@ def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: 
     if here is None:
         raise ConfigError(
             f"{root} holds no registration of study {spec.name} (no {REGISTRATION_FILE}): only runs made by `pimbrl study "
-            "run` are archived"
+            "run` are archived; run the study there with `pimbrl study run`, or give its own --run-dir"
         )
+
+    def check() -> dict[str, Any]:  # the registration to write, or a ConfigError before anything is written
+        stray = _unregistered(archive, runs, root)
+        if stray is not None:
+            raise ConfigError(
+                f"{stray} is archived but {archive} holds no registration (its start is unknown): restore "
+                f"{archive / REGISTRATION_FILE} (git checkout), or archive into a new --archive"
+            )
+        kept = _registration(archive, spec) if archive.is_dir() else None
+        return here if kept is None else _merged(kept, here, archive / REGISTRATION_FILE, root / REGISTRATION_FILE)
+
+    check()  # before the archive folder is made
     fd = _lock(archive)
     try:
-        _remove_staging(archive)
-        kept = _registration(archive, spec)
-        registration = here if kept is None else _merged(kept, here, archive / REGISTRATION_FILE, root / REGISTRATION_FILE)
+        registration = check()  # again under the lock
+        _remove_staging(archive, runs, root)
         result = ArchiveResult()
         todo = []
         for run in runs:
@@ -276,10 +305,10 @@ def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: 
                     f"{target} holds other files than the finished run {run.path}; an archived run is never overwritten "
                     "and nothing was copied (remove it from the archive first if the new run replaces it)"
                 )
+        _write_registration(archive, registration)  # first: it covers every run copied after it
         for run, rel in todo:
             copy_run_files(run.path, archive / rel)
             result.copied.append(rel)
-        _write_registration(archive, registration)
     finally:
         os.close(fd)
     return result
@@ -308,6 +337,13 @@ def plan_restore(spec: StudySpec, root: str | Path, archive: str | Path, runs: S
     if not archive.is_dir():
         return plan
     kept = _registration(archive, spec)
+    stray = _unregistered(archive, runs, root)
+    if stray is not None:
+        plan.refusal = (
+            f"{stray} is archived but {archive} holds no registration (its start is unknown): restore "
+            f"{archive / REGISTRATION_FILE} (git checkout), or leave the archive out (--no-archive)"
+        )
+        return plan
     for run in runs:
         if os.path.lexists(run.path):
             continue
@@ -326,7 +362,7 @@ def plan_restore(spec: StudySpec, root: str | Path, archive: str | Path, runs: S
         made = [str(r.path) for r in runs if os.path.lexists(r.path / "config.json")]
         if made:
             plan.refusal = (
-                f"{made[0]} holds a run but its directory no registration of study {spec.name}: the archive's "
+                f"{made[0]} holds a run but its run directory holds no registration of study {spec.name}: the archive's "
                 "registration would cover runs it never saw; give a new --run-dir (the archive's runs come back into "
                 "it), or --no-archive"
             )

@@ -225,7 +225,7 @@ def run_study(
     first run (:mod:`.registration`). ``archive``: a folder of the study's finished runs (:mod:`.archive`); each
     one whose directory does not exist here is copied back before the start, so that only the rest train.
     """
-    from .archive import restore_study
+    from .archive import plan_restore, restore_study
     from .registration import start_study
     from .replicas import plan_replicas, replicate, same_episodes
 
@@ -247,6 +247,10 @@ def run_study(
     lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
     try:
         specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
+        if archive is not None:  # a refusal before --rerun moves anything
+            refusal = plan_restore(spec, root, archive, runs).refusal
+            if refusal is not None:
+                raise ConfigError(refusal)
         check_reuse(specs, rerun=rerun, log=log)
         if archive is not None:  # after --rerun moved runs aside: their archived copies come back
             restored = restore_study(spec, root, archive, runs)
