@@ -310,3 +310,27 @@ def test_archiving_into_another_study_s_folder_removes_nothing_there(tmp_path) -
     with pytest.raises(ConfigError, match="records no first start"):
         archive_study(spec, root, tmp_path / "new", plan_study(spec, root))
     assert not (tmp_path / "new").exists()  # a refused first archive leaves no folder
+
+
+@pytest.mark.slow
+def test_keep_archive_copies_each_run_as_it_finishes(tmp_path, capsys, monkeypatch) -> None:
+    path = _spec(tmp_path, seeds=[0])
+    spec = load_spec(path)
+    logs: list[str] = []
+    record = run_study(spec, tmp_path / "runs", archive=tmp_path / "kept", keep_archive=True, status=False, log=logs.append)
+    done = logs.index("done mfrl seed 0")
+    assert logs[done + 1].startswith("archived 1 finished run(s) to")  # at once, not only at the end
+    assert (tmp_path / "kept" / "study.json").is_file()
+    assert _finals(record) == {0: json_final(tmp_path / "kept" / "mfrl" / "seed0")}
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "status", str(path), "--keep-archive"]) == 2
+    assert "--keep-archive applies to study run, not status" in capsys.readouterr().err
+    assert main(["study", "run", str(path), "--run-dir", "runs", "--keep-archive", "--archive", "runs/inside"]) == 2
+    assert "lie one inside the other" in capsys.readouterr().err
+
+
+def json_final(run: Path) -> float:
+    """The last evaluation's mean return in an archived run's evaluations.csv."""
+    lines = (run / "evaluations.csv").read_text().strip().splitlines()
+    header = lines[0].split(",")
+    return float(lines[-1].split(",")[header.index("return_mean")])

@@ -511,16 +511,32 @@ def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> Non
         print(line)
 
 
-def _study_archive(args: argparse.Namespace, spec: Any) -> Path | None:
+def _study_archive(args: argparse.Namespace, spec: Any, root: Path) -> Path | None:
     """The archive a `pimbrl study` action reads or writes (``None``: none), after checking the flags."""
+    archive = _archive_flag(args, spec)
+    if archive is not None and (args.action == "archive" or args.keep_archive):
+        inner, outer = archive.resolve(), root.resolve()
+        if inner.is_relative_to(outer) or outer.is_relative_to(inner):
+            raise ValueError(
+                f"the archive {archive} and the run directory {root} lie one inside the other (the run directory does not "
+                "outlive the machine, and an archive holds no checkpoint): give --archive DIR apart from it"
+            )
+    return archive
+
+
+def _archive_flag(args: argparse.Namespace, spec: Any) -> Path | None:
     from .experiments.archive import default_archive
 
     if args.archive is not None and args.no_archive:
         raise ValueError("give --archive DIR or --no-archive, not both")
+    if args.keep_archive and args.action != "run":
+        raise ValueError(f"--keep-archive applies to study run, not {args.action}")
     if args.action not in ("run", "status", "archive"):
         if args.archive is not None or args.no_archive:
             raise ValueError(f"--archive and --no-archive apply to study run, status and archive, not {args.action}")
         return None
+    if args.keep_archive and args.no_archive:
+        raise ValueError("give --keep-archive or --no-archive, not both")
     if args.no_archive:
         if args.action == "archive":
             raise ValueError("`pimbrl study archive` writes an archive: drop --no-archive")
@@ -535,7 +551,7 @@ def _study_archive(args: argparse.Namespace, spec: Any) -> Path | None:
     archive = Path(args.archive)
     if archive.exists() and not archive.is_dir():
         raise ValueError(f"--archive {archive} is not a folder: give the archive's folder")
-    if args.action != "archive" and not archive.is_dir():
+    if args.action != "archive" and not archive.is_dir() and not args.keep_archive:
         raise ValueError(
             f"no archive {archive}: check --archive, or drop it to use {default_archive(spec)} (the one beside the spec)"
         )
@@ -576,8 +592,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
 
     log = lambda m: print(m, flush=True)
     if args.action == "report" and args.pages:
-        if args.archive is not None or args.no_archive:
-            raise ValueError("--archive and --no-archive apply to study run, status and archive, not report")
+        if args.archive is not None or args.no_archive or args.keep_archive:
+            raise ValueError("--archive, --no-archive and --keep-archive apply to study run, status and archive, not report")
         specs = [load_spec(p) for p in args.specs]
         folders = dict.fromkeys(Path(p).resolve().parent for p in args.specs)  # the first holding the hand-written part
         header = next((f / "_reproduce.md" for f in folders if (f / "_reproduce.md").is_file()), None)
@@ -594,7 +610,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
             if i:
                 print()
             each = load_spec(path)
-            kept = _study_archive(args, each)
+            kept = _study_archive(args, each, _study_run_dir(path, each.name, None))
             _study_status(each, _study_run_dir(path, each.name, None), args.jobs, kept)
         return 0
     if len(args.specs) != 1:
@@ -603,7 +619,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         )
     spec = load_spec(args.specs[0])
     root = _study_run_dir(args.specs[0], spec.name, args.run_dir)
-    archive = _study_archive(args, spec)
+    archive = _study_archive(args, spec, root)
     if args.action == "plan":
         runs = plan_study(spec, root)
         for r in runs:
@@ -619,12 +635,6 @@ def _cmd_study(args: argparse.Namespace) -> int:
         from .experiments.archive import archive_study
 
         assert archive is not None
-        inner, outer = archive.resolve(), root.resolve()
-        if inner.is_relative_to(outer) or outer.is_relative_to(inner):
-            raise ValueError(
-                f"the archive {archive} and the run directory {root} lie one inside the other (the run directory does not "
-                "outlive the machine, and an archive holds no checkpoint): give --archive DIR apart from it"
-            )
         result = archive_study(spec, root, archive, plan_study(spec, root))
         print(result.line("archived", archive) + f" (commit it to keep it: git add {archive})")
         return 0
@@ -632,7 +642,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         _check_run_dir(str(root))
         record = run_study(
             spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun,
-            replicas=not args.no_replicas, archive=archive, log=log,
+            replicas=not args.no_replicas, archive=archive, keep_archive=args.keep_archive, log=log,
         )  # fmt: skip
         print(f"study {spec.name}: {len(record['runs'])} runs recorded in {root / 'record.json'}")
         if record["failed"]:
@@ -900,6 +910,11 @@ def build_parser() -> argparse.ArgumentParser:
         "beside the spec)",
     )
     st.add_argument("--no-archive", action="store_true", help="run, status: leave the archive out")
+    st.add_argument(
+        "--keep-archive",
+        action="store_true",
+        help="run: copy each run into the archive as it finishes (then commit the archive to keep it)",
+    )
     st.add_argument(
         "--out",
         default=None,

@@ -213,6 +213,7 @@ def run_study(
     run: bool = True,
     replicas: bool = True,
     archive: str | Path | None = None,
+    keep_archive: bool = False,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Train what is missing of ``spec`` in ``root`` and return (and write) its record.
@@ -223,9 +224,11 @@ def run_study(
     they stand. ``replicas``: a seed-free controller's arm runs two seeds and copies the first into the others
     where the two agree on every episode (:mod:`.replicas`). A confirmatory spec must be committed before its
     first run (:mod:`.registration`). ``archive``: a folder of the study's finished runs (:mod:`.archive`); each
-    one whose directory does not exist here is copied back before the start, so that only the rest train.
+    one whose directory does not exist here is copied back before the start, so that only the rest train. With
+    ``keep_archive`` each run is copied into ``archive`` as it finishes, and every finished run at the end (a
+    copy that cannot be made is logged; the study goes on).
     """
-    from .archive import plan_restore, restore_study
+    from .archive import archive_study, plan_restore, restore_study
     from .registration import start_study
     from .replicas import plan_replicas, replicate, same_episodes
 
@@ -271,8 +274,23 @@ def run_study(
             if not batch:
                 return []
             by_path = {str(r.path) for r in batch}
-            bad = run_all([s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports)
+            by_run = {str(r.path): r for r in runs}
+            done = (lambda s: keep([by_run[str(s.path)]])) if keep_archive and archive is not None else None
+            bad = run_all(
+                [s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports,
+                on_done=done,
+            )  # fmt: skip
             return [str(s.path.relative_to(root)) for s in bad]
+
+        def keep(which: Sequence[StudyRun]) -> None:  # into the archive; a failure there never stops the study
+            assert archive is not None
+            try:
+                result = archive_study(spec, root, archive, which)
+            except (ConfigError, OSError, ValueError) as exc:
+                log(f"archive: nothing copied to {archive} ({str(exc).splitlines()[0]}); the study goes on")
+                return
+            if result.copied:
+                log(result.line("archived", Path(archive)))
 
         copies = plan_replicas(runs, todo) if replicas else {}  # seed-free controllers: two probes, the rest copied
         failed = train([r for r in todo if r.path not in copies])
@@ -290,6 +308,8 @@ def run_study(
                 continue
             log(f"copy {copy.label(spec.compact)} seed {copy.seed}: seed-free, seeds {first.seed} and {second.seed} agree")
         failed += train(rest)
+        if keep_archive and archive is not None:
+            keep(runs)  # the copies of seed-free runs, and runs finished on Ray
         return _write_record(spec, runs, root, failed, run=True)  # under the lock: no other driver moves a run meanwhile
     finally:
         os.close(lock)

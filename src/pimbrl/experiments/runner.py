@@ -283,6 +283,7 @@ def run_all(
     log: Callable[[str], None] = print,
     status: bool = True,
     imports: Sequence[str] = (),
+    on_done: Callable[[RunSpec], None] | None = None,
 ) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
@@ -290,7 +291,8 @@ def run_all(
     ``pimbrl train --config <that file> --run-dir <run> --quiet``; an interrupted run is resumed
     (``pimbrl resume <run>``). A child's output goes to ``<run>/compare.log``. With ``status``, one line
     per running child is shown on stderr (:func:`child_status`). ``imports``: the ``--import`` arguments each
-    child gets (the modules or files that declare a user's system).
+    child gets (the modules or files that declare a user's system). ``on_done(spec)`` is called as each run
+    finishes well (while the others train).
     """
     pending = []
     imported = [arg for spec in imports for arg in ("--import", spec)]
@@ -345,6 +347,8 @@ def run_all(
                     )
                 else:
                     log(f"done {spec.label} seed {spec.seed}")
+                    if on_done is not None:
+                        on_done(spec)
             lines.show([spec for spec, _, _ in running])
     finally:
         lines.close()
