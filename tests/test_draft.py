@@ -132,3 +132,32 @@ def test_create_file_never_writes_over_a_file(tmp_path) -> None:
     with pytest.raises(FileExistsError):
         create_file(tmp_path / "a" / "s.yaml", b"two")
     assert (tmp_path / "a" / "s.yaml").read_bytes() == b"one" and sorted(p.name for p in (tmp_path / "a").iterdir()) == ["s.yaml"]
+
+
+def test_the_threshold_rule_reads_the_lowest_chosen_iqm_of_the_steps_hypotheses_arms() -> None:
+    import dataclasses
+
+    from pimbrl.experiments.draft import THRESHOLD_RULE, _Family, rule_threshold
+
+    def fam(name: str, iqm: float) -> _Family:
+        return _Family(name, None, iqm, {})
+
+    arms = {"pimbrl": "p", "mbrl": "m", "known-scheme": "k", "tuned model-free arm": "f"}
+    assert rule_threshold("t", [fam("p", -9.766), fam("m", -9.71), fam("k", -9.6), fam("f", -9.9), fam("x", -50)], arms) == -9.9
+    assert rule_threshold("t", [fam("p", -135.4), fam("m", -130.0)], arms) == -140.0  # toward worse, two figures
+    assert rule_threshold("t", [fam("p", 187.3), fam("m", 200.0)], arms) == 180.0
+    with pytest.raises(ConfigError, match="threshold rule has nothing to read"):
+        rule_threshold("t", [fam("x", -1.0)], arms)
+
+    spec = load_spec(PENDING / "tune-burgers.yaml")
+    record = load_record(spec)
+    with pytest.raises(ConfigError, match="recipe sets the threshold -11; the rule is for systems without one"):
+        draft_confirmatory(spec, record, None, threshold="rule")
+    none = dataclasses.replace(spec, overrides={**spec.overrides, "threshold": None})
+    text = draft_confirmatory(none, {**record, "thresholds": {}}, None, threshold="rule")
+    draft = parse_spec(load_yaml(text), where="d", base=PENDING)
+    steps = {h.threshold for h in draft.hypotheses if h.threshold is not None}
+    chosen = [float(line.split()[3]) for line in text.splitlines() if line.startswith(("  # pimbrl:", "  # mbrl:",
+              "  # known-scheme:", "  # mfrl-matched:"))]  # fmt: skip
+    assert len(chosen) == 4 and steps == {rule_threshold("t", [fam("a", min(chosen))], {"pimbrl": "a"})}
+    assert THRESHOLD_RULE in " ".join(text.split())

@@ -558,6 +558,16 @@ def _archive_flag(args: argparse.Namespace, spec: Any) -> Path | None:
     return archive
 
 
+def _threshold_arg(text: str) -> float | str:
+    """`study draft --threshold`: a number, or ``rule``."""
+    if text == "rule":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"give a number or 'rule', got {text!r}") from None
+
+
 def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
     """`pimbrl study draft TUNING`: the confirmatory spec its record gives, to --out (never over a file) or stdout."""
     from .experiments.draft import draft_confirmatory
@@ -927,7 +937,11 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--total-steps", type=int, default=None, help="draft: real steps per run, where not the tuning runs' (KS)")
     st.add_argument("--holdout-episodes", type=int, default=100, help="draft: holdout states each run's final policy plays")
     st.add_argument(
-        "--threshold", type=float, default=None, help="draft: the return H1a and H3 count steps to, where the recipe sets none"
+        "--threshold",
+        type=_threshold_arg,
+        default=None,
+        help="draft: the return H1a and H3 count steps to, where the recipe sets none; 'rule': derived from the tuning "
+        "record by docs/confirmatory.md's rule",
     )
     st.add_argument("--pages", default=None, metavar="DOCS", help="report: write DOCS/results.md and DOCS/reproduce.md")
     _add_import(st)

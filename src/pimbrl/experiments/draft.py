@@ -32,7 +32,7 @@ from .report import json_line, study_report
 from .spec import StudySpec, parse_spec
 from .stats import MIN_RUNS_FOR_VERDICT
 
-__all__ = ["FIRST_SEED", "draft_confirmatory"]
+__all__ = ["FIRST_SEED", "THRESHOLD_RULE", "draft_confirmatory", "rule_threshold"]
 
 #: the first seed of a confirmatory run (no tuning run used 100 or above)
 FIRST_SEED = 100
@@ -61,7 +61,7 @@ def draft_confirmatory(
     other_seeds: int | None = None,
     holdout_episodes: int = 100,
     total_steps: int | None = None,
-    threshold: float | None = None,
+    threshold: float | str | None = None,
 ) -> str:
     """The YAML text of the confirmatory spec drafted from tuning study ``spec`` and its ``record``.
 
@@ -77,7 +77,8 @@ def draft_confirmatory(
         holdout_episodes: the holdout states each run's final policy plays once (its outcome).
         total_steps: the runs' real steps where they differ from the tuning runs' (KS tunes shorter runs).
         threshold: the return of the steps-to-threshold hypotheses (H1a, H3), where the system's recipe
-            sets none (chosen on earlier or validation curves, never on the holdout pool).
+            sets none (chosen on earlier or validation curves, never on the holdout pool); ``"rule"``: the
+            one :func:`rule_threshold` derives from the tuning record (docs/confirmatory.md's rule).
     """
     if seeds < 1 or (other_seeds is not None and not 1 <= other_seeds <= seeds) or holdout_episodes < 1:
         raise ConfigError(
@@ -109,6 +110,16 @@ def draft_confirmatory(
     partial = "model.prior" in spec.overrides
     arms = _protocol_arms(spec.name, families, rules, partial)
     tuned = _tuning_run_config(spec)  # the budget and threshold the tuning runs had
+    by_rule = threshold == "rule"
+    if by_rule:
+        if tuned.threshold is not None:
+            raise ConfigError(
+                f"{spec.name}: the system's recipe sets the threshold {tuned.threshold:g}; the rule is for systems "
+                "without one: drop --threshold rule"
+            )
+        threshold = rule_threshold(spec.name, families, arms)
+    elif isinstance(threshold, str):
+        raise ConfigError(f"draft: threshold must be a number or 'rule', got {threshold!r}")
     if threshold is None and tuned.threshold is not None:
         threshold = float(tuned.threshold)
     if threshold is not None and threshold not in thresholds:
@@ -159,6 +170,8 @@ def draft_confirmatory(
         lines.append(f"  {fam.name}: {json_line(entry)}")
     lines += [f"overrides: {json_line(overrides)}", "outcome: holdout"]
     if thresholds:
+        if by_rule:
+            lines.append(f"# threshold {threshold:g} by docs/confirmatory.md's rule: {THRESHOLD_RULE}")
         lines.append(f"thresholds: {json_line(thresholds)}")
     lines.append(f"statistics: {json_line({'confidence': spec.confidence, 'reps': spec.reps})}")
     pairs = list(dict.fromkeys((h["better"], h["than"]) for h in hypotheses.values()))
@@ -181,6 +194,28 @@ def draft_confirmatory(
     lines[-1:-1] = ["plan: >-", *_wrapped(plan, "  ")]
     _parsed(lines, where, folder)
     return "\n".join(lines) + "\n"
+
+
+#: how ``--threshold rule`` derives the steps-to-threshold return (stated before any study used it)
+THRESHOLD_RULE = (
+    "the lowest final validation IQM among the chosen settings of the arms H1a and H3 compare (PiMBRL, MBRL, "
+    "known-scheme Dyna and the tuned model-free arm), rounded toward a worse return to two significant figures"
+)
+
+
+def rule_threshold(name: str, families: list[_Family], arms: dict[str, str | None]) -> float:
+    """The threshold :data:`THRESHOLD_RULE` gives: every arm it names reached it, as an IQM, on validation."""
+    import math
+
+    named = {arms[r] for r in ("pimbrl", "mbrl", "known-scheme", "tuned model-free arm") if arms.get(r)}
+    iqms = [f.iqm for f in families if f.name in named]
+    if not iqms:
+        raise ConfigError(f"{name}: no arm of H1a or H3 was tuned, so the threshold rule has nothing to read")
+    low = min(iqms)
+    if low == 0:
+        return 0.0
+    unit = 10.0 ** (math.floor(math.log10(abs(low))) - 1)
+    return float(round(math.floor(low / unit + 1e-9) * unit, 10))
 
 
 def _tuning_run_config(spec: StudySpec) -> Any:
