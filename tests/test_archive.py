@@ -334,3 +334,13 @@ def json_final(run: Path) -> float:
     lines = (run / "evaluations.csv").read_text().strip().splitlines()
     header = lines[0].split(",")
     return float(lines[-1].split(",")[header.index("return_mean")])
+
+
+def test_status_of_a_study_whose_runs_are_gone_but_whose_record_is_kept_says_so(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    path = _spec(tmp_path, record={"path": "kept.json", "format": "study"})
+    assert main(["study", "status", str(path)]) == 0
+    assert "no run directory runs/arch yet (start it" in capsys.readouterr().out
+    (tmp_path / "kept.json").write_text("{}")
+    assert main(["study", "status", str(path)]) == 0
+    assert "no run directory runs/arch here; its record kept.json is kept" in capsys.readouterr().out

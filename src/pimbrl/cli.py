@@ -503,7 +503,12 @@ def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> Non
                 f"{len(plan.runs)} finished run(s) wait in the archive {archive} for `pimbrl study run` to copy them back"
                 + (f"; {len(plan.passed)} left out there ({plan.passed[0]})" if plan.passed else "")
             )
-    if not root.is_dir():
+    if not root.is_dir() and spec.record is not None and spec.record.path.is_file():
+        print(
+            f"study {spec.name}: no run directory {root} here; its record {os.path.relpath(spec.record.path)} is kept "
+            "(`pimbrl study report` reads it)"
+        )
+    elif not root.is_dir():
         print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
     else:
         print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
