@@ -15,15 +15,7 @@ from pimbrl.experiments.engine import plan_study, run_study
 from pimbrl.experiments.spec import load_spec
 from pimbrl.fileio import UnsafeFileError
 
-TINY_MFRL = {
-    "total_steps": 80,
-    "warmup_steps": 20,
-    "update_after": 20,
-    "eval_every": 40,
-    "eval_episodes": 1,
-    "agent.hidden": [32, 32],
-    "agent.batch_size": 32,
-}
+from .test_studies import TINY_MFRL
 
 
 def _spec(folder: Path, name: str = "s.yaml", **data) -> Path:
