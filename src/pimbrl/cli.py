@@ -625,8 +625,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
             if i:
                 print()
             each = load_spec(path)
-            kept = _study_archive(args, each, _study_run_dir(path, each.name, None))
-            _study_status(each, _study_run_dir(path, each.name, None), args.jobs, kept)
+            each_root = _study_run_dir(path, each.name, None)
+            _study_status(each, each_root, args.jobs, _study_archive(args, each, each_root))
         return 0
     if len(args.specs) != 1:
         raise ValueError(

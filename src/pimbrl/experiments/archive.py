@@ -378,14 +378,18 @@ def plan_restore(spec: StudySpec, root: str | Path, archive: str | Path, runs: S
     return plan
 
 
-def restore_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun]) -> ArchiveResult:
+def restore_study(
+    spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun], plan: RestorePlan | None = None
+) -> ArchiveResult:
     """Copy each archived finished run of ``runs`` whose directory in ``root`` does not exist back into ``root``.
 
     The archive's registration comes first (merged with one ``root`` holds), so a confirmatory study keeps its
-    archived first start. :func:`plan_restore` decides; its refusal is a :class:`ConfigError`.
+    archived first start. :func:`plan_restore` decides (``plan``: its answer, where nothing in ``root`` has
+    changed since it was made); its refusal is a :class:`ConfigError`.
     """
     root, archive = Path(root), Path(archive)
-    plan = plan_restore(spec, root, archive, runs)
+    if plan is None:
+        plan = plan_restore(spec, root, archive, runs)
     if plan.refusal is not None:
         raise ConfigError(plan.refusal)
     result = ArchiveResult(passed=list(plan.passed))

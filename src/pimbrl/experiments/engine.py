@@ -250,13 +250,13 @@ def run_study(
     lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
     try:
         specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
-        if archive is not None:  # a refusal before --rerun moves anything
-            refusal = plan_restore(spec, root, archive, runs).refusal
-            if refusal is not None:
-                raise ConfigError(refusal)
+        by_run = {str(r.path): r for r in runs}
+        plan = plan_restore(spec, root, archive, runs) if archive is not None else None
+        if plan is not None and plan.refusal is not None:  # refused before --rerun moves anything
+            raise ConfigError(plan.refusal)
         check_reuse(specs, rerun=rerun, log=log)
-        if archive is not None:  # after --rerun moved runs aside: their archived copies come back
-            restored = restore_study(spec, root, archive, runs)
+        if archive is not None:  # after --rerun moved runs aside their archived copies come back: planned again
+            restored = restore_study(spec, root, archive, runs, None if rerun else plan)
             if restored.copied or restored.passed:
                 log(restored.line("restored", Path(archive)))
         start_study(spec, root, runs)  # after the checks: a start refused there is no start
@@ -274,7 +274,6 @@ def run_study(
             if not batch:
                 return []
             by_path = {str(r.path) for r in batch}
-            by_run = {str(r.path): r for r in runs}
             done = (lambda s: keep([by_run[str(s.path)]])) if keep_archive and archive is not None else None
             bad = run_all(
                 [s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports,
