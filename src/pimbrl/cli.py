@@ -494,8 +494,9 @@ def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> Non
     from .experiments.progress import progress_lines, study_progress
 
     notes = []
+    runs = plan_study(spec, root)  # planned once: the archive's restore and the progress table read the same runs
     if archive is not None and archive.is_dir():
-        plan = plan_restore(spec, root, archive, plan_study(spec, root))
+        plan = plan_restore(spec, root, archive, runs)
         if plan.refusal is not None:
             notes.append(f"the archive {archive} is not restored here: {plan.refusal}")
         elif plan.runs or plan.passed:
@@ -511,7 +512,7 @@ def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> Non
     elif not root.is_dir():
         print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
     else:
-        print("\n".join(progress_lines(spec, study_progress(spec, root), jobs=jobs)))
+        print("\n".join(progress_lines(spec, study_progress(spec, root, runs), jobs=jobs)))
     for line in notes:
         print(line)
 

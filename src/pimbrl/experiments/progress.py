@@ -108,9 +108,12 @@ def _dpc_progress(rd: RunDirectory) -> tuple[int, float | None]:
     return steps, None if wall is None else float(wall)
 
 
-def study_progress(spec: StudySpec, root: str | Path) -> list[RunProgress]:
-    """Every planned run of ``spec`` under ``root`` with its state, steps and wall-clock (no returns)."""
-    return [_progress(run) for run in plan_study(spec, root)]
+def study_progress(spec: StudySpec, root: str | Path, runs: Sequence[StudyRun] | None = None) -> list[RunProgress]:
+    """Every planned run of ``spec`` under ``root`` with its state, steps and wall-clock (no returns).
+
+    ``runs``: the study's plan where the caller has made it already (``plan_study(spec, root)``).
+    """
+    return [_progress(run) for run in (plan_study(spec, root) if runs is None else runs)]
 
 
 def _kind(run: StudyRun) -> tuple[str, ...]:
@@ -157,12 +160,15 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
         path for path, (a, b) in planned.items() if not (state[a.path] == state[b.path] == "finished" and not same_episodes(a, b))
     }
     left_s, unknown, borrowed = 0.0, [], []
+    walls = {  # each finished run's wall-clock, read once
+        p.run.path: p.wall_s for p in progress if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)
+    }
     kin: dict[tuple[str, ...], list[float]] = {}  # finished wall-clocks of every arm of one kind (see _kind)
     for p in progress:
-        if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s):
-            kin.setdefault(_kind(p.run), []).append(p.wall_s)
+        if p.run.path in walls:
+            kin.setdefault(_kind(p.run), []).append(walls[p.run.path])
     for label, ps in groups.items():
-        done = [p.wall_s for p in ps if p.state == "finished" and p.wall_s is not None and math.isfinite(p.wall_s)]
+        done = [walls[p.run.path] for p in ps if p.run.path in walls]
         mean = sum(done) / len(done) if done else None
         running = [p.steps_text for p in ps if p.state == "running"]
         cells = [
