@@ -195,3 +195,23 @@ def test_the_readme_findings_cite_only_records_with_their_cpu_model_and_commit()
         for p in [ROOT / "docs" / "results.md", *(ROOT / "docs" / "control").glob("*/report.md")]
     }
     assert unprovenanced_findings((ROOT / "README.md").read_text(), pages) == []
+
+
+def test_every_spec_with_a_study_record_is_the_text_that_record_was_made_under() -> None:
+    """A spec edited after its runs (an arm added, a plan changed) would name runs that never ran: new work goes
+    in a new spec, and the record's own copy of the spec is the file."""
+    import json
+
+    from pimbrl.experiments.spec import load_spec
+
+    checked = []
+    for path in sorted([*(ROOT / "benchmarks").glob("*/*.yaml")]):
+        spec = load_spec(path)
+        if spec.record is None or spec.record.format != "study" or not spec.record.path.is_file():
+            continue
+        record = json.loads(spec.record.path.read_text())
+        assert record["spec_sha256"] == spec.sha256, (
+            f"{path.relative_to(ROOT)} hashes to {spec.sha256[:16]}, but its record was made under {record['spec_sha256'][:16]}"
+        )
+        checked.append(spec.name)
+    assert {"confirmatory-burgers", "control-dpc-ks-horizon", "tune-burgers"} <= set(checked)

@@ -365,6 +365,10 @@ def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
         "CPU: Some CPU (GenuineIntel family 6 model 1 stepping 2, flags 0badf00d) (not recorded for 1 of 4 runs); "
         "commit: 0000000000, 1111111111, 2222222222 (not recorded for 1 of 4 runs)."
     ) in text
+    assert "made under another version" not in text
+    record["spec_sha256"] = "f" * 64  # the spec file changed after the record was made: the report says so
+    text = study_report(spec, record).markdown
+    assert f"SHA-256 `{spec.sha256[:16]}`; **the record was made under another version of it**, SHA-256 `ffffffffffffffff`" in text
 
 
 # ---------------------------------------------------------------------------------- registration
