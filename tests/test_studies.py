@@ -368,7 +368,9 @@ def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
     assert "made under another version" not in text
     record["spec_sha256"] = "f" * 64  # the spec file changed after the record was made: the report says so
     text = study_report(spec, record).markdown
-    assert f"SHA-256 `{spec.sha256[:16]}`; **the record was made under another version of it**, SHA-256 `ffffffffffffffff`" in text
+    assert (
+        f"SHA-256 `{spec.sha256[:16]}`; **the record was made under another version of it**, SHA-256 `ffffffffffffffff`" in text
+    )
 
 
 # ---------------------------------------------------------------------------------- registration
