@@ -1,0 +1,97 @@
+"""Time one shell command (the README's main job, the test tiers, CI) and record its wall-clock.
+
+The README's figures for "how long does this take" come from here, not from memory: each entry names the
+command, the directory it ran in and that checkout's commit, the CPU model, how many cores the machine had,
+what else ran on them (``--load``, in words: a number that depends on it means little without it) and the exit
+status. A failing command is recorded with its status, never as a timing of success.
+
+    python benchmarks/time_command.py readme-main-job --cwd /tmp/fresh --load "a study's two training processes" \
+        -- 'python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/pimbrl compare burgers ...'
+
+Entries accumulate in benchmarks/results/command_timings.json (newest last); the command's own output goes to
+this process's stdout and stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+RECORD = RESULTS / "command_timings.json"
+
+
+def _commit(cwd: Path) -> str:
+    done = subprocess.run(["git", "-C", str(cwd), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{cwd} is not a git checkout (git rev-parse: {done.stderr.strip()}); give --cwd a clone")
+    dirty = subprocess.run(
+        ["git", "-C", str(cwd), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True
+    )
+    return done.stdout.strip() + ("+uncommitted changes" if dirty.stdout.strip() else "")
+
+
+def _machine() -> dict[str, object]:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+    from pimbrl.training.rundir import cpu_identity, cpu_model
+
+    return {"cpu": cpu_model(), "cpu_id": cpu_identity(), "cores": os.cpu_count()}
+
+
+def read_timings(path: Path = RECORD) -> list[dict[str, object]]:
+    """The recorded entries, oldest first (none where the file does not exist)."""
+    if not path.is_file():
+        return []
+    entries = json.loads(path.read_text())
+    if not isinstance(entries, list):
+        raise SystemExit(f"{path} is not a list of timing entries; move it aside and time again")
+    return entries
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("name", help="what is timed, e.g. readme-main-job, fast-tier, ci")
+    parser.add_argument("--cwd", type=Path, default=Path.cwd(), help="the checkout the command runs in")
+    parser.add_argument("--load", required=True, help="what else ran on the cores meanwhile, in words ('idle' if nothing)")
+    argv = sys.argv[1:] if argv is None else argv
+    if "--" not in argv:
+        parser.error("give the command after --")
+    cut = argv.index("--")
+    args = parser.parse_args(argv[:cut])
+    command = " ".join(argv[cut + 1 :]).strip()
+    if not command:
+        parser.error("give the command after --")
+    cwd = args.cwd.resolve()
+    commit = _commit(cwd)
+    start = time.time()
+    t0 = time.perf_counter()
+    status = subprocess.run(command, shell=True, cwd=cwd).returncode
+    wall = time.perf_counter() - t0
+    entry = {
+        "name": args.name,
+        "command": command,
+        "cwd": str(cwd),
+        "commit": commit,
+        "machine": _machine(),
+        "load": args.load,
+        "started_unix": start,
+        "wall_s": round(wall, 1),
+        "exit_status": status,
+    }
+    entries = [*read_timings(), entry]
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    tmp = RECORD.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(entries, indent=2) + "\n")
+    os.replace(tmp, RECORD)
+    minutes, seconds = divmod(round(wall), 60)
+    print(f"{args.name}: {minutes} min {seconds} s, exit status {status} (recorded in {RECORD})", file=sys.stderr)
+    return status
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
