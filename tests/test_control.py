@@ -328,3 +328,5 @@ def test_a_ratio_of_median_steps_to_a_controller_that_needs_none_is_undefined_no
     known = {"median": 0, "at_most": None, "above": None}
     assert _ratio_text(_median_ratio(identified, known)) == "unknown"
     assert _median_ratio(known, identified) == {"value": 0.0, "bound": "="}
+    never = {"median": None, "at_most": None, "above": 3000}  # a model-free arm that never reached it
+    assert _median_ratio(known, never) == {"value": 0.0, "bound": "="} and _ratio_text(_median_ratio(known, never)) == "0.00"

@@ -203,6 +203,8 @@ def _median_ratio(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     """
     if b["median"] == 0:
         return {"value": None, "bound": "unknown"}
+    if a["median"] == 0:  # no real step against any number of them, reached or not: exactly 0
+        return {"value": 0.0, "bound": "="}
     if a["median"] is not None and b["median"] is not None:
         return {"value": a["median"] / b["median"], "bound": "="}
     a_high = a["median"] if a["median"] is not None else a["at_most"]
