@@ -8,6 +8,7 @@ import os
 for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ[_var] = "1"
 
+import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
@@ -49,21 +50,28 @@ def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 7)
 
 
 def machine() -> dict[str, str]:
-    from pimbrl.training.rundir import cpu_model, source_commit
+    from pimbrl.training.rundir import cpu_identity, cpu_model, source_commit
 
     return {
         "python": platform.python_version(),
         "torch": torch.__version__,
         "cpu": cpu_model(),
+        "cpu_id": cpu_identity() or "unknown",
         "commit": source_commit() or "unknown",
         "threads": "1 (NUMBA/OMP/MKL/OPENBLAS_NUM_THREADS=1, torch.set_num_threads(1))",
     }
 
 
-def record(name: str, payload: dict) -> Path:
+def add_load_argument(parser: argparse.ArgumentParser) -> None:
+    """``--load``: what else ran on the cores during the measurement, in words; :func:`record` keeps it."""
+    parser.add_argument("--load", default=None, help="what else ran on the cores meanwhile, in words ('idle' if nothing)")
+
+
+def record(name: str, payload: dict, load: str | None = None) -> Path:
+    """Write ``payload`` to ``benchmarks/results/<name>.json`` with the machine, the time and ``load`` (if given)."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
-    payload = {"machine": machine(), "unix_time": time.time(), **payload}
+    payload = {"machine": machine(), "unix_time": time.time(), **({"load": load} if load else {}), **payload}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(payload, indent=2))
     os.replace(tmp, path)

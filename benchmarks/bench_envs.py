@@ -59,6 +59,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batches", default="1,16,256")
     parser.add_argument("--numpy-max-batch", type=int, default=256, help="skip the slow NumPy reference above this batch")
+    _common.add_load_argument(parser)
     args = parser.parse_args()
     batches = [int(b) for b in args.batches.split(",")]
     rng = np.random.default_rng(0)
@@ -94,7 +95,7 @@ def main() -> None:
                 f"vector-env {1e6 * t_vec / b:9.2f} us  numpy {np_txt} us  kernel speed-up {speedup}",
                 flush=True,
             )
-    path = _common.record("envs", {"rows": rows})
+    path = _common.record("envs", {"rows": rows}, load=args.load)
     print(f"recorded {path}")
 
 

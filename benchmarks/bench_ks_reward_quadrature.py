@@ -62,6 +62,7 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=5, help="intermediate states per control step (N)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--reward", default="code", choices=["code", "physical"])
+    _common.add_load_argument(parser)
     args = parser.parse_args()
 
     ks = KuramotoSivashinsky(reward=args.reward)
@@ -134,7 +135,7 @@ def main() -> None:
     for name in names:
         s = out[name]["return"]
         print(f"{name:22s} {'return':7s} {s['mean']:15.3e} {s['p99']:11.3e} {s['max']:11.3e}")
-    print(f"recorded {_common.record('ks_reward_quadrature', out)} ({elapsed:.0f} s)")
+    print(f"recorded {_common.record('ks_reward_quadrature', out, load=args.load)} ({elapsed:.0f} s)")
 
 
 if __name__ == "__main__":

@@ -103,14 +103,16 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", choices=["all", "accuracy", "timing"], default="all")
-    part = parser.parse_args().part
+    _common.add_load_argument(parser)
+    args = parser.parse_args()
+    part = args.part
     rng = np.random.default_rng(0)
     if part in ("all", "accuracy"):
         acc = [row for phys in (KuramotoSivashinsky(), Burgers()) for row in etd_accuracy(phys, rng)]
-        print(f"recorded {_common.record('model_residual_accuracy', {'rows': acc})}")
+        print(f"recorded {_common.record('model_residual_accuracy', {'rows': acc}, load=args.load)}")
     if part in ("all", "timing"):
         rows = [row for phys in (KuramotoSivashinsky(), Burgers()) for row in timing(phys, rng)]
-        print(f"recorded {_common.record('model_step', {'batch': BATCH, 'rows': rows})}")
+        print(f"recorded {_common.record('model_step', {'batch': BATCH, 'rows': rows}, load=args.load)}")
 
 
 if __name__ == "__main__":

@@ -56,6 +56,7 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=6)
     parser.add_argument("--name", default=None, help="record benchmarks/results/<name>.json")
+    _common.add_load_argument(parser)
     args = parser.parse_args()
     cases = {"eager": (_agent(128), _batch(128)), "eager_batch1": (_agent(1), _batch(1)), "compiled": (_agent(128), _batch(128))}
     _compile(cases["compiled"][0])
@@ -81,7 +82,7 @@ def main() -> None:
         f"{ratios['batch1_over_eager']:.2f}; compilation and warm-up {warm['compiled']:.0f} s"
     )
     if args.name:
-        _common.record(args.name, {"ms_per_update": ms, "ratios": ratios, "compile_warmup_s": warm["compiled"]})
+        _common.record(args.name, {"ms_per_update": ms, "ratios": ratios, "compile_warmup_s": warm["compiled"]}, load=args.load)
 
 
 if __name__ == "__main__":

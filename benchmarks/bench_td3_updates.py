@@ -10,6 +10,7 @@ Usage: ``pip install stable-baselines3`` then ``python benchmarks/bench_td3_upda
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import _common
@@ -85,9 +86,13 @@ def bench(obs_dim: int, act_dim: int, n: int = 20_000) -> dict:
 def main() -> None:
     import stable_baselines3
 
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    _common.add_load_argument(parser)
+    args = parser.parse_args()
+
     rows = [bench(3, 1), bench(64, 4)]
     payload = {"sb3_version": stable_baselines3.__version__, "torch_threads": torch.get_num_threads(), "rows": rows}
-    print(f"recorded {_common.record('td3_updates', payload)}")
+    print(f"recorded {_common.record('td3_updates', payload, load=args.load)}")
 
 
 if __name__ == "__main__":

@@ -1,17 +1,18 @@
 """Collect the summaries of `pimbrl compare` and `pimbrl model-eval` directories into benchmarks/results/
 and print them as Markdown tables (the tables of docs/results.md come from this script).
 
-Usage: ``python benchmarks/collect_results.py [ROOT ...]`` with each ROOT a compare or sweep directory or one that holds
-``<name>/summary.json`` (of a compare or a sweep) and ``model-eval/<env>/summary.json`` (default
+Usage: ``python benchmarks/collect_results.py [ROOT ...] [--load TEXT]`` with each ROOT a compare or sweep directory
+or one that holds ``<name>/summary.json`` (of a compare or a sweep) and ``model-eval/<env>/summary.json`` (default
 benchmarks/runs/final). Copies each summary to ``benchmarks/results/compare_<name>.json``,
-``sweep_<name>.json`` or ``model_eval_<env>.json``.
+``sweep_<name>.json`` or ``model_eval_<env>.json``; ``--load`` (what else ran on the cores while the model-eval
+runs were timed, in words) is added to each ``model_eval_<env>.json``.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
 from pimbrl.experiments.compare import ratio_lines
@@ -112,7 +113,7 @@ def model_study_table(record: dict) -> str:
     return "\n".join(rows)
 
 
-def main(roots: list[Path]) -> None:
+def main(roots: list[Path], load: str | None = None) -> None:
     RESULTS.mkdir(exist_ok=True)
     evals = {}
     for root in roots:
@@ -130,7 +131,11 @@ def main(roots: list[Path]) -> None:
                 print(f"## {name} ({summary['env']})\n\n{compare_table(summary)}\n")
         for path in sorted(root.glob("model-eval/*/summary.json")):
             evals[path.parent.name] = json.loads(path.read_text())
-            shutil.copyfile(path, RESULTS / f"model_eval_{path.parent.name}.json")
+            if load:
+                record = {**evals[path.parent.name], "load": load}
+                (RESULTS / f"model_eval_{path.parent.name}.json").write_text(json.dumps(record, indent=2) + "\n")
+            else:
+                shutil.copyfile(path, RESULTS / f"model_eval_{path.parent.name}.json")
     if evals:
         print(f"## model errors (next-state MSE)\n\n{model_eval_table(evals)}")
     for path in sorted(RESULTS.glob("model_study_*.json")):
@@ -138,4 +143,8 @@ def main(roots: list[Path]) -> None:
 
 
 if __name__ == "__main__":
-    main([Path(a) for a in sys.argv[1:]] or [Path(__file__).resolve().parent / "runs" / "final"])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("roots", nargs="*", type=Path, default=[Path(__file__).resolve().parent / "runs" / "final"])
+    parser.add_argument("--load", default=None, help="what else ran on the cores during the model-eval runs, in words")
+    args = parser.parse_args()
+    main(args.roots, args.load)

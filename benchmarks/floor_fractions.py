@@ -10,8 +10,9 @@ the study engine), the fraction of final returns below the floor, labelled as su
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
+
+import _common
 
 from pimbrl.experiments.report import load_record
 from pimbrl.experiments.spec import load_spec
@@ -62,8 +63,7 @@ def main() -> None:
                        "points": len(points), "fraction_below_floor": below}  # fmt: skip
                 out.append(row)
                 print(f"{system} floor {floor:.2f}  {name:22s} {arm:20s} {below:6.1%} of {len(points)} {what} below")
-    path = ROOT / "results" / "floor_fractions.json"
-    path.write_text(json.dumps({"command": "python benchmarks/floor_fractions.py", "rows": out}, indent=2) + "\n")
+    path = _common.record("floor_fractions", {"command": "python benchmarks/floor_fractions.py", "rows": out})
     print(f"wrote {path}")
 
 

@@ -10,6 +10,7 @@ Usage: ``python benchmarks/ks_pool_stats.py``
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import _common
@@ -19,6 +20,9 @@ from pimbrl.systems import KSPoolConfig, KuramotoSivashinsky, ks_initial_state_p
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    _common.add_load_argument(parser)
+    args = parser.parse_args()
     cfg = KSPoolConfig()
     out = {"config": cfg.__dict__, "authors": {"min": -244.7, "max": -234.6, "mean": -240.0, "n": 200}}
     for split in ("train", "test"):
@@ -46,7 +50,7 @@ def main() -> None:
                 f"p95 {stats['p95']:8.1f}  max {stats['max']:8.1f}  (load/build {elapsed:.1f} s)"
             )
     print("authors' 200 states (reward=code): min -244.7  max -234.6  mean -240.0")
-    print(f"recorded {_common.record('ks_pools', out)}")
+    print(f"recorded {_common.record('ks_pools', out, load=args.load)}")
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ def main() -> None:
     parser.add_argument("--labels", type=int, default=400)
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--run-dir", required=True)
+    _common.add_load_argument(parser)
     args = parser.parse_args()
     out = Path(args.run_dir)
     cmd = ["pimbrl", "model-eval", args.env, "--labels", str(args.labels), "--seeds", str(args.seeds), "--run-dir", str(out)]
@@ -64,6 +65,7 @@ def main() -> None:
             "ratio_out_max": max(ratios),
             "wall_s": study["wall_s"],
         },
+        load=args.load,
     )
 
 

@@ -41,6 +41,7 @@ def main() -> None:
     parser.add_argument("--out-dir", required=True)
     parser.add_argument("--configs", default=",".join(CONFIGS))
     parser.add_argument("--model", default=None, help="PDE model kind (default: the setting's)")
+    _common.add_load_argument(parser)
     args = parser.parse_args()
     labels, steps, broad, kind = SETTINGS[args.env]
     kind = args.model or kind
@@ -65,7 +66,7 @@ def main() -> None:
                 spread = f"[{r['min']:.2e}, {r['max']:.2e}]"
                 print(f"  labels {r['labels']:5d} {r['model']:9s} {r['split']:3s}  mean {r['mean']:.2e} {spread}")
     record["ratio_data_over_physics"] = _ratios(record)
-    _common.record(f"model_study_{args.env}_{kind}", record)
+    _common.record(f"model_study_{args.env}_{kind}", record, load=args.load)
 
 
 def _ratios(record: dict[str, object]) -> dict[str, dict[str, float]]:

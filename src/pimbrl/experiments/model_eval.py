@@ -35,6 +35,7 @@ from ..physics import Physics
 from ..spaces import ActionAdapter
 from ..systems import get_system
 from ..training.methods import PhysicsLoss
+from ..training.rundir import provenance
 from .model_eval_config import PHYSICS_FLAGS, ModelEvalConfig, defaults
 
 __all__ = [
@@ -192,7 +193,7 @@ def run_model_eval(
     log(f"{env_id}: {len(train)} training, {len(test_in)} in-sample and {len(test_out)} out-of-sample test transitions")
 
     models = {}
-    summary: dict[str, Any] = {"env": env_id, "config": dataclasses.asdict(cfg), "train_s": {}}
+    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": dataclasses.asdict(cfg), "train_s": {}}
     sources = choose_sources(cfg.physics.sources, physics)
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
