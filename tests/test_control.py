@@ -315,6 +315,8 @@ def test_compare_and_the_study_report_carry_a_controllers_costs(tmp_path, capsys
     (entry,) = record["runs"]
     assert entry["method"] == "feedback" and entry["agent"] is None and entry["real_transitions"] == 0
     assert entry["validation_transitions"] == 2 * 200 and entry["inference_s_per_step"] > 0
+    assert entry["feedback"]["kind"] == "energy-lqr" and entry["feedback"]["gain"] == 0.5  # the choice, in the record
+    assert [v["gain"] for v in entry["feedback"]["validation"]] == [0.5]
     assert main(["study", "report", str(run_dir / "study.yaml")]) == 0
     out = capsys.readouterr().out
     assert "| validation transitions | inference (ms per control step) |" in out

@@ -415,8 +415,20 @@ def _run_entry(run: StudyRun, root: Path, payload: dict[str, Any]) -> dict[str, 
         "inference_s_per_step": summary.get("inference_s_per_step"),
         "provenance": payload.get("provenance"),
         "replicate_of": _replica_source(payload),
+        "feedback": _feedback_choice(run) if run.config.control else None,
         "curve": curve,
     }
+
+
+def _feedback_choice(run: StudyRun) -> dict[str, Any] | None:
+    """A feedback run's chosen gain with every candidate's validation return (its ``control.json``), else ``None``."""
+    from ..training.control_run import read_stages
+
+    stages = read_stages(RunDirectory(run.path)) or {}
+    chosen = stages.get("feedback")
+    if not isinstance(chosen, dict) or "gain" not in chosen:
+        return None
+    return {"kind": chosen.get("kind"), "gain": chosen["gain"], "validation": chosen.get("validation")}
 
 
 def _replica_source(payload: dict[str, Any]) -> str | None:
