@@ -215,3 +215,27 @@ def test_every_spec_with_a_study_record_is_the_text_that_record_was_made_under()
         )
         checked.append(spec.name)
     assert {"confirmatory-burgers", "control-dpc-ks-horizon", "tune-burgers"} <= set(checked)
+
+
+# ------------------------------------------------------------------------- the README's timings
+#: a duration as the README writes one: "16 min 13 s"
+DURATION = re.compile(r"\b(\d+) min (\d+) s\b")
+
+
+def untimed_durations(readme: str, entries: list[dict]) -> list[str]:
+    """Each "M min S s" of the README that no successful entry of command_timings.json measured (to the second)."""
+    measured = {round(float(e["wall_s"])) for e in entries if e.get("exit_status") == 0}
+    return [m.group(0) for m in DURATION.finditer(readme) if int(m.group(1)) * 60 + int(m.group(2)) not in measured]
+
+
+def test_every_timing_in_the_readme_is_a_recorded_measurement() -> None:
+    import json
+
+    entries = [{"wall_s": 973.4, "exit_status": 0}, {"wall_s": 61.0, "exit_status": 1}]
+    assert untimed_durations("takes 16 min 13 s here", entries) == []
+    assert untimed_durations("takes 1 min 1 s here", entries) == ["1 min 1 s"]  # that run failed
+    assert untimed_durations("7 min 9 s", entries) == ["7 min 9 s"]
+    record = ROOT / "benchmarks" / "results" / "command_timings.json"
+    readme = (ROOT / "README.md").read_text()
+    assert "command_timings.json" in readme, "the README's timings must name their record"
+    assert untimed_durations(readme, json.loads(record.read_text())) == []
