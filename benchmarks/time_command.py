@@ -37,6 +37,8 @@ def _commit(cwd: Path) -> str:
 
 
 def _machine() -> dict[str, object]:
+    # Not _common.machine(): importing _common pins every thread pool through os.environ, which the timed
+    # command would inherit, so it would time something else than the README's command.
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
     from pimbrl.training.rundir import cpu_identity, cpu_model
 

@@ -549,17 +549,17 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
     commits = sorted({str((r.get("provenance") or {}).get("commit"))[:10] for r in record["runs"] if r.get("provenance")})
     prov = record.get("provenance") or {}
     spec_link = _relative(spec.path, link_base) if spec.path is not None else spec.name
+    made_under = record.get("spec_sha256")
+    changed = (  # the record names the spec it was made under: say where they part
+        f"; **the record was made under another version of it**, SHA-256 `{str(made_under)[:16]}` (its text is in the "
+        "record's `spec` field): the spec changed after its runs, so the arms reported here may not be the arms that ran"
+        if made_under and made_under != spec.sha256
+        else ""
+    )
     lines = [
         f"- **Label**: {label} ({why}).",
-        f"- **Spec**: [{Path(spec.path).name if spec.path else spec.name}]({spec_link}), SHA-256 `{spec.sha256[:16]}`.",
+        f"- **Spec**: [{Path(spec.path).name if spec.path else spec.name}]({spec_link}), SHA-256 `{spec.sha256[:16]}`{changed}.",
     ]
-    made_under = record.get("spec_sha256")
-    if made_under and made_under != spec.sha256:  # the record names the spec it was made under: say where they part
-        lines[-1] = lines[-1][:-1] + (
-            f"; **the record was made under another version of it**, SHA-256 `{str(made_under)[:16]}` (its text is "
-            "in the record's `spec` field): the spec changed after its runs, so the arms reported here may not be "
-            "the arms that ran."
-        )
     if spec.record is not None and spec.record.format != "study":
         lines.append(
             f"- **Record**: `{_relative(spec.record.path, link_base)}` "
