@@ -90,6 +90,16 @@ def _type_checking_nodes(tree: ast.AST) -> set[int]:
     return skipped
 
 
+def _segment(lines: list[str], node: ast.stmt) -> str:
+    """The source text of an import statement, from the file's lines split once."""
+    first, last = node.lineno - 1, (node.end_lineno or node.lineno) - 1
+    start, end = node.col_offset, node.end_col_offset  # offsets in UTF-8 bytes, as ast gives them
+    cut = lambda i, a, b: lines[i].encode()[a:b].decode()
+    if first == last:
+        return cut(first, start, end)
+    return "\n".join([cut(first, start, None), *lines[first + 1 : last], cut(last, None, end)])
+
+
 def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
     """The absolute module a ``from ... import`` statement imports from."""
     if node.level == 0:
@@ -107,6 +117,7 @@ def build_graph(src: Path = SRC, root: str = ROOT_PACKAGE) -> tuple[set[str], li
     for path in files:
         module = _module_name(path, src)
         source = path.read_text()
+        lines = source.splitlines()  # once per file: ast.get_source_segment splits the whole file on every call
         tree = ast.parse(source, filename=str(path))
         skipped = _type_checking_nodes(tree)
         for node in ast.walk(tree):
@@ -123,7 +134,7 @@ def build_graph(src: Path = SRC, root: str = ROOT_PACKAGE) -> tuple[set[str], li
                     targets.append(sub if sub in modules else base)
             else:
                 continue
-            text = ast.get_source_segment(source, node) or ast.dump(node)
+            text = _segment(lines, node)
             for target in dict.fromkeys(targets):
                 # ``import pimbrl.a.b`` names a module; keep the longest known prefix of anything else
                 while target and target not in modules:

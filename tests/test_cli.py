@@ -7,7 +7,9 @@ import pytest
 from pimbrl.cli import main
 
 
-@pytest.mark.parametrize(("env", "policy"), [("burgers", "random"), ("cartpole", "zero"), ("pendulum", "constant")])
+@pytest.mark.parametrize(
+    ("env", "policy"), [pytest.param("burgers", "random", marks=pytest.mark.slow), ("cartpole", "zero"), ("pendulum", "constant")]
+)
 def test_simulate_writes_a_figure_and_prints_the_return(env: str, policy: str, tmp_path, capsys) -> None:
     out = tmp_path / "fig.png"
     args = ["simulate", env, "--policy", policy, "--seed", "3", "--out", str(out)]

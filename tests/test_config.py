@@ -283,6 +283,7 @@ def _modules(package: str) -> list[str]:
     return sorted(f"pimbrl.{package}" + ("" if p.stem == "__init__" else f".{p.stem}") for p in (SRC / package).glob("*.py"))
 
 
+@pytest.mark.slow
 def test_experiments_and_training_never_import_the_cli() -> None:
     modules = _modules("training") + _modules("experiments")
     # at import time: each module imported afresh (every pimbrl module dropped before the next)

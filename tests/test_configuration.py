@@ -247,6 +247,7 @@ def test_model_eval_uses_the_training_s_physics_loss_and_its_defaults() -> None:
     assert "PhysicsPairs(" in (ROOT / "src/pimbrl/experiments/model_eval.py").read_text()
 
 
+@pytest.mark.slow
 def test_the_model_phase_reads_fit_check_imagine(tmp_path, monkeypatch) -> None:
     from pimbrl.training.dyna import DynaModel
 
@@ -484,6 +485,7 @@ def test_a_sweep_plans_each_distinct_run_once_and_inside_its_root(tmp_path) -> N
     assert all("/" not in Path(t.path).parent.name and ".." not in Path(t.path).parent.name for t in trials)
 
 
+@pytest.mark.slow
 def test_a_huge_comparison_is_refused_at_once_and_planning_is_per_method(tmp_path, capsys) -> None:
     from pimbrl.experiments.compare import MAX_SEEDS, plan_runs
 

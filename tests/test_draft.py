@@ -26,6 +26,7 @@ def _draft(tuning: str, tmp_path: Path, **kwargs):
 
 
 @pytest.mark.parametrize("name", ["burgers", "partial-burgers"])
+@pytest.mark.slow
 def test_the_draft_of_a_finished_tuning_study_has_the_registered_spec_s_arms_and_hypotheses(name: str, tmp_path) -> None:
     _, draft = _draft(f"tune-{name}", tmp_path)
     registered = load_spec(REGISTERED / f"confirmatory-{name}.yaml")
@@ -41,6 +42,7 @@ def test_the_draft_of_a_finished_tuning_study_has_the_registered_spec_s_arms_and
         assert (got.better, got.than, got.metric, got.threshold) == (h.better, h.than, h.metric, h.threshold), h.id
 
 
+@pytest.mark.slow
 def test_h4_is_stated_against_every_rl_arm_and_h2_only_under_a_wrong_prior(tmp_path) -> None:
     _, draft = _draft("tune-burgers", tmp_path)
     ids = {h.id: (h.better, h.than) for h in draft.hypotheses}
@@ -70,6 +72,7 @@ def test_fewer_seeds_for_the_other_arms_keep_every_hypothesis_decidable(tmp_path
     assert "mbrl 5.1" in plan and "mpc 1.8" in plan and "dpc 28.4" in plan  # MBRL doubled; controllers not
 
 
+@pytest.mark.slow
 def test_the_steps_hypotheses_count_to_the_recipe_s_threshold_or_one_given(tmp_path) -> None:
     import dataclasses
 
@@ -134,6 +137,7 @@ def test_create_file_never_writes_over_a_file(tmp_path) -> None:
     assert (tmp_path / "a" / "s.yaml").read_bytes() == b"one" and sorted(p.name for p in (tmp_path / "a").iterdir()) == ["s.yaml"]
 
 
+@pytest.mark.slow
 def test_the_threshold_rule_reads_the_lowest_chosen_iqm_of_the_steps_hypotheses_arms() -> None:
     import dataclasses
 

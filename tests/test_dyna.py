@@ -43,6 +43,7 @@ def _for_method(args: list[str], method: str) -> list[str]:
 
 @pytest.mark.parametrize("method", ["mbrl", "pimbrl"])
 @pytest.mark.parametrize("env", list(DYNA_SMOKE))
+@pytest.mark.slow
 def test_model_based_methods_run_on_every_env(env: str, method: str, tmp_path) -> None:
     run = tmp_path / "run"
     smoke = _for_method(DYNA_SMOKE[env], method)
@@ -313,6 +314,7 @@ def test_the_median_steps_to_threshold_is_measured_when_the_middle_runs_reached_
 
 
 @pytest.mark.parametrize("fraction", [0.0, 1.0])
+@pytest.mark.slow
 def test_reset_starts_imagine_episodes_from_the_training_pool(tmp_path, ks_small_pools, fraction: float) -> None:
     """``imagine.reset_start_fraction`` 1: every imagined rollout starts at step 0 from a training-pool state
     (never a test-pool one); 0: from the real buffer's states, which lie later in their episodes."""
@@ -340,6 +342,7 @@ def test_reset_starts_imagine_episodes_from_the_training_pool(tmp_path, ks_small
         assert int(k.max()) >= 20  # starts at the real buffer's steps (collected from step 0 on, warm-up 20)
 
 
+@pytest.mark.slow
 def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) -> None:
     """3 rollouts, half continued and half from resets: each share rounds to 2, yet 3 rollouts start."""
     cfg = resolve_config(
@@ -362,6 +365,7 @@ def test_start_shares_that_round_up_together_still_fit_the_rollouts(tmp_path) ->
     assert run.model.imagined_total == len(k) > 0 and int((k == 0).sum()) > 0  # some episodes began at reset
 
 
+@pytest.mark.slow
 def test_symmetric_reset_starts_are_images_of_training_states(tmp_path, ks_small_pools) -> None:
     """``experimental.reset_start_symmetry``: each fresh imagined episode starts from a training-pool state shifted
     and possibly reflected (``u(x) -> -u(-x)``), mostly not a pool state itself, never a test-pool state."""

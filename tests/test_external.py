@@ -148,6 +148,7 @@ def test_a_simulator_without_the_state_in_info_is_refused() -> None:
 
 
 @pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@pytest.mark.slow
 def test_controlgym_priors_match_the_simulator() -> None:
     import torch
 

@@ -202,6 +202,7 @@ def test_a_run_uses_the_physics_model_from_its_first_phase_and_resumes(env: str,
 
 
 @pytest.mark.parametrize("kind", ["physics", "hybrid"])
+@pytest.mark.slow
 def test_a_pimbrl_runs_physics_model_steps_the_learned_coefficients(kind: str, tmp_path) -> None:
     """The model steps the run's own residual, so it predicts with the coefficients the labels identified."""
     method = "identified-scheme" if kind == "physics" else "pihybrid"

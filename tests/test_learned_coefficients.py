@@ -162,6 +162,7 @@ def _train_with_wrong_prior(run, env: str, true: dict, prior: str, learn: str) -
     return json.loads((run / "coefficients.json").read_text())
 
 
+@pytest.mark.slow
 def test_a_run_with_a_wrong_prior_learns_the_coefficient_and_writes_coefficients_json(tmp_path) -> None:
     run = tmp_path / "run"
     report = _train_with_wrong_prior(run, "burgers", {"nu": 0.013}, "nu=0.01", "nu")
@@ -310,6 +311,7 @@ def test_a_wrong_or_missing_ode_coefficient_is_identified_from_labelled_transiti
     assert residual.coefficients.current()[name] == pytest.approx(getattr(system, name), rel=0.01)
 
 
+@pytest.mark.slow
 def test_a_pendulum_run_with_a_wrong_length_learns_it(tmp_path) -> None:
     run = tmp_path / "run"
     report = _train_with_wrong_prior(run, "pendulum", {"l": 1.3}, "l=1.0", "l")
@@ -427,6 +429,7 @@ def test_imagined_rewards_and_a_resumed_model_side_use_the_learned_width(tmp_pat
     assert np.abs(reward - prior).max() > 1e-3 * np.abs(prior).max()  # the prior's shapes would give other rewards
 
 
+@pytest.mark.slow
 def test_a_run_learning_the_width_feeds_it_to_the_model_and_the_imagined_steps(tmp_path) -> None:
     """Burgers, equivariant model, actuators 30 % wider than the prior's: after the run (no reload), the
     forcing input and the imagined steps' physics hold the width of coefficients.json."""

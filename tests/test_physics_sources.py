@@ -120,6 +120,7 @@ def _pendulum(method: str, **settings) -> object:
     return resolve_config("pimbrl/Pendulum-v0", {**over, **model})
 
 
+@pytest.mark.slow
 def test_physics_only_training_before_labels_and_the_relative_gate(tmp_path) -> None:
     """PiMBRL with physics_start trains its model from the box states alone before start_model_after; the
     relative gate compares the held-out error with the no-change prediction's."""
@@ -185,6 +186,7 @@ def test_sources_an_environment_does_not_offer_are_a_config_error() -> None:
     assert resolve_config("pimbrl/CartPole-v0", {"method": "pimbrl"}).method.physics.sources == ()  # all it offers
 
 
+@pytest.mark.slow
 def test_the_physics_loss_stays_on_after_physics_start(tmp_path) -> None:
     """With physics_start below start_model_after, the physics loss is on in every model phase after it,
     also once labels are used and before n_sR is reached."""

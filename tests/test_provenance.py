@@ -46,6 +46,7 @@ def _run(tmp_path, name: str, method: str, **extra) -> tuple[dict, dict]:
     return payload, summary.__dict__
 
 
+@pytest.mark.slow
 def test_a_run_records_where_it_ran_and_what_its_method_used(tmp_path) -> None:
     payload, mf = _run(tmp_path, "mf", "mfrl")
     assert payload["provenance"]["cpu"] == cpu_model() and payload["provenance"]["cores"] >= 1
@@ -61,6 +62,7 @@ def test_a_run_records_where_it_ran_and_what_its_method_used(tmp_path) -> None:
     assert recorded["scheme_transitions"] == known["scheme_transitions"]
 
 
+@pytest.mark.slow
 def test_policy_selection_s_steps_in_the_scheme_are_counted_and_old_checkpoints_say_unknown(tmp_path) -> None:
     _, plain = _run(tmp_path, "plain", "known-scheme")
     _, selecting = _run(tmp_path, "select", "known-scheme", **{"imagine.select_episodes": 2})

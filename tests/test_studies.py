@@ -291,6 +291,7 @@ def _rliable_interval(
     return float(point["x"][0]), float(interval["x"][0, 0]), float(interval["x"][1, 0])
 
 
+@pytest.mark.slow
 def test_vectorised_intervals_are_rliables_to_the_last_bit() -> None:
     """The vectorised bootstrap draws rliable's resamples and computes its statistics: every number is identical."""
     from rliable import metrics

@@ -259,6 +259,7 @@ def test_a_module_that_raises_on_import_is_a_one_line_error(tmp_path, capsys) ->
     assert "failed: RuntimeError: the user module is broken" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_an_installed_package_registers_its_systems_through_an_entry_point(tmp_path) -> None:
     pkg = tmp_path / "site"
     (pkg / "mysystems").mkdir(parents=True)
@@ -285,6 +286,7 @@ def test_an_installed_package_registers_its_systems_through_an_entry_point(tmp_p
     assert out.stdout.split("\n")[:2] == ["['example/Duffing-v0']", "entry point duffing"]
 
 
+@pytest.mark.slow
 def test_an_import_by_a_relative_path_from_the_working_directory(tmp_path) -> None:
     cmd = [
         sys.executable,

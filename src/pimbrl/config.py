@@ -13,11 +13,13 @@ is declared with ``param(..., finite=False)``), and the sizes and counts carry u
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
+import functools
 import math
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 __all__ = [
@@ -208,8 +210,10 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+@functools.cache
+def _field_types(cls: type) -> Mapping[str, Any]:
+    """The resolved annotations of a config class, once per class (the parser is built on every command)."""
+    return types.MappingProxyType(typing.get_type_hints(cls))
 
 
 def _base_type(tp: Any) -> Any:
@@ -368,8 +372,16 @@ _YAML_FLOAT = r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
 def load_yaml(text: str) -> Any:
     """YAML data (``yaml.safe_load``: no object is constructed) with YAML 1.2's floats (``1e-3`` is a number).
 
-    A key given twice in one mapping is an error (``yaml.YAMLError``), not the last one silently kept.
+    A key given twice in one mapping is an error (``yaml.YAMLError``), not the last one silently kept. The
+    data of a text read before is a fresh copy of what it gave then (every command reads the systems'
+    preset files; parsing them again costs more than copying), so the caller may change what it gets.
     """
+    return copy.deepcopy(_parsed_yaml(text))
+
+
+@functools.lru_cache(maxsize=64)
+def _parsed_yaml(text: str) -> Any:
+    """The parse behind :func:`load_yaml`, kept per text (an error is raised again each time, not kept)."""
     import re
 
     import yaml
