@@ -804,7 +804,7 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("system", ["burgers", "pendulum"])
+@pytest.mark.parametrize("system", ["burgers", "pendulum", "cartpole"])
 def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str) -> None:
     """src/pimbrl/systems/SYSTEM.yaml's `best` is what tune-SYSTEM's report writes, section for section."""
     import dataclasses
