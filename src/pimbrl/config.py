@@ -38,6 +38,7 @@ __all__ = [
     "add_arguments",
     "at_most",
     "check_env_id",
+    "field_types",
     "flag_of",
     "load_yaml",
     "overrides_from_args",
@@ -211,8 +212,8 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 
 
 @functools.cache
-def _field_types(cls: type) -> Mapping[str, Any]:
-    """The resolved annotations of a config class, once per class (the parser is built on every command)."""
+def field_types(cls: type) -> Mapping[str, Any]:
+    """The resolved annotations of a config class (read-only), once per class: the parser is built on every command."""
     return types.MappingProxyType(typing.get_type_hints(cls))
 
 
@@ -281,7 +282,7 @@ def add_arguments(
     :data:`UNSET` so that only the flags actually given override a preset; ``none`` given for an optional
     field sets it to ``None``.
     """
-    hints = _field_types(cls)
+    hints = field_types(cls)
     for f in dataclasses.fields(cls):
         tp = hints[f.name]
         if f.name in skip or dataclasses.is_dataclass(tp) or _base_type(tp) is dict:

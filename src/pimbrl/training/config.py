@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from ..config import (
     ConfigError,
     at_most,
     check_env_id,
+    field_types,
     in_range,
     load_yaml,
     non_negative,
@@ -299,7 +299,7 @@ def setting_type(path: str) -> Any:
     if path in ("method", "agent"):
         return str
     cls, f = found[0]
-    return typing.get_type_hints(cls)[f.name]
+    return field_types(cls)[f.name]
 
 
 #: the run settings a control method (feedback, mpc, dpc) reads: it trains no agent and keeps no replay
