@@ -36,6 +36,7 @@ def test_an_extended_run_continues_to_the_larger_budget(tmp_path, capsys) -> Non
     assert [r["step"] for r in RunDirectory(short).evaluations.read()] == ["150", "300", "450"]
 
 
+@pytest.mark.slow
 def test_extending_to_fewer_steps_is_a_one_line_error(tmp_path, capsys) -> None:
     run = tmp_path / "run"
     args = [*_for_method(DYNA_SMOKE["pendulum"], "mbrl"), *TINY, *SMALL_MODEL, "--method", "mbrl"]
@@ -61,6 +62,7 @@ def test_wall_clock_to_threshold_is_the_training_time_of_the_first_evaluation_at
     assert wall_s_to_threshold(rows, None) is None
 
 
+@pytest.mark.slow
 def test_a_finished_run_reports_wall_clock_to_its_threshold(tmp_path) -> None:
     run = tmp_path / "run"
     args = [*_for_method(DYNA_SMOKE["pendulum"], "mbrl"), *TINY, *SMALL_MODEL, "--method", "mbrl", "--threshold=-1e9"]

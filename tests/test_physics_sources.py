@@ -140,6 +140,7 @@ def test_physics_only_training_before_labels_and_the_relative_gate(tmp_path) -> 
         _pendulum("pimbrl", **{"model.network": "equivariant"})
 
 
+@pytest.mark.slow
 def test_the_model_study_writes_errors_by_labels(tmp_path) -> None:
     out = tmp_path / "study"
     args = ["model-eval", "cartpole", "--run-dir", str(out), "--labels", "0,50", "--physics.sources", "policy,box", "--steps", "40",
