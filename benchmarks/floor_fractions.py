@@ -6,6 +6,10 @@ The floor is the final test return of the ``feedback`` arm of the control studie
 draws). For each RL study record: per arm, the fraction of its test evaluations (all seeds, all evaluation
 steps) below the floor where the record holds curves; where it holds only final returns (records made before
 the study engine), the fraction of final returns below the floor, labelled as such.
+
+A system's confirmatory study, once its record exists, is read against its own feedback arm (the same code,
+seeds and states): each RL arm's test evaluations against the feedback run's test return, and its runs'
+holdout returns against the feedback run's holdout return.
 """
 
 from __future__ import annotations
@@ -28,6 +32,47 @@ FLOORS = {
     "pimbrl/CartPole-v0": ("control-cartpole", ["cartpole-compare"]),
     "pimbrl/KuramotoSivashinsky-v0": ("control-ks", ["ks-compare-55", "ks-headline", "ks-selection"]),
 }
+CONFIRMATORY = ROOT / "confirmatory"
+#: the confirmatory study of each system, read against its own feedback arm where its record exists
+CONFIRMATORY_STUDIES = {
+    "pimbrl/Burgers-v0": "confirmatory-burgers",
+    "pimbrl/Pendulum-v0": "confirmatory-pendulum",
+    "pimbrl/CartPole-v0": "confirmatory-cartpole",
+}
+#: the arms that are controllers, not RL methods
+CONTROLLERS = {"feedback", "mpc", "dpc"}
+
+
+def confirmatory_rows(system: str, name: str) -> list[dict]:
+    """Each RL arm of a confirmatory record against the record's own feedback arm: test curves and holdout returns."""
+    try:
+        record = load_record(load_spec(CONFIRMATORY / f"{name}.yaml"))
+    except FileNotFoundError as exc:
+        print(f"{system}: {exc}; skipped")
+        return []
+    runs = [r for r in record["runs"] if r["system"] == system and r["finished"]]
+    feedback = [r for r in runs if r["method"] == "feedback"]
+    if not feedback:
+        print(f"{system}: no finished feedback run in {name}; skipped")
+        return []
+    floors = {"evaluations": feedback[0]["final_return"], "holdout returns": feedback[0]["holdout_return"]}
+    arms: dict[str, list[dict]] = {}
+    for r in runs:
+        if r["method"] not in CONTROLLERS:
+            arms.setdefault(r["arm"], []).append(r)
+    rows = []
+    for arm, arm_runs in arms.items():
+        measured = {
+            "evaluations": [v for r in arm_runs for v in r["curve"]["return_mean"]],
+            "holdout returns": [r["holdout_return"] for r in arm_runs],
+        }
+        for what, points in measured.items():
+            floor = floors[what]
+            below = sum(v < floor for v in points) / len(points)
+            rows.append({"system": system, "floor": floor, "study": name, "arm": arm, "measure": what,
+                         "points": len(points), "fraction_below_floor": below})  # fmt: skip
+            print(f"{system} floor {floor:.2f}  {name:22s} {arm:20s} {below:6.1%} of {len(points)} {what} below")
+    return rows
 
 
 def main() -> None:
@@ -63,6 +108,8 @@ def main() -> None:
                        "points": len(points), "fraction_below_floor": below}  # fmt: skip
                 out.append(row)
                 print(f"{system} floor {floor:.2f}  {name:22s} {arm:20s} {below:6.1%} of {len(points)} {what} below")
+    for system, name in CONFIRMATORY_STUDIES.items():
+        out.extend(confirmatory_rows(system, name))
     path = _common.record("floor_fractions", {"command": "python benchmarks/floor_fractions.py", "rows": out})
     print(f"wrote {path}")
 
