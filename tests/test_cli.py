@@ -54,3 +54,21 @@ def test_bad_input_gives_a_clear_error(capsys, tmp_path) -> None:
     assert "needs --value" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["simulate", "burgers", "--steps", "0"])
+
+
+@pytest.mark.slow
+def test_a_closed_standard_output_ends_the_command_quietly() -> None:
+    # `pimbrl train ... --print-config | head -1`: the reader goes away before the command writes
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pimbrl.cli", "train", "pendulum", "--print-config"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # no reader: the command's first write fails with EPIPE
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141
+    assert err == ""  # no traceback, no "Exception ignored" at exit, no error line (no run was stopped)

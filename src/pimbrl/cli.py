@@ -1062,11 +1062,22 @@ def _checkpoint_note(args: argparse.Namespace) -> str:
     )
 
 
+def _silence_stdout() -> None:
+    """Point standard output at the null device, so that what is still buffered for a closed pipe is dropped at exit."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no file descriptor behind sys.stdout (a test's capture)
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``pimbrl`` command line on ``argv`` (default: ``sys.argv[1:]``) and return the exit status.
 
     A bad input, a disk or file-system error (with the path) and a diverging run end with one line,
-    ``pimbrl <command>: error: <problem>; <fix>``, and exit status 2.
+    ``pimbrl <command>: error: <problem>; <fix>``, and exit status 2. A closed standard output (the reader of a
+    pipe went away) ends the command quietly with status 141, with a line on how to go on where a run was stopped.
     """
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -1088,7 +1099,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     prefix = f"pimbrl {args.command}: error:"
     try:
         _load_systems(args)
-        return int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
+        status = int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
+        sys.stdout.flush()  # a reader that went away surfaces here, not as a second error at exit
+        return status
+    except BrokenPipeError:  # `pimbrl study status SPEC | head -1`: the reader has what it wanted
+        _silence_stdout()
+        if note := _checkpoint_note(args):  # a run stopped by it can go on
+            print(f"pimbrl {args.command}: stopped: its standard output was closed{note}", file=sys.stderr)
+        return 141  # 128 + SIGPIPE, as a shell reports a command its pipe ended
     except (ConfigError, ValueError) as exc:
         print(f"{prefix} {exc}", file=sys.stderr)
         return 2
