@@ -9,8 +9,10 @@ for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLA
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import hashlib  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -23,7 +25,8 @@ torch.set_num_threads(1)
 if TYPE_CHECKING:
     from pimbrl.training import Run
 
-RESULTS = Path(__file__).resolve().parent / "results"
+REPOSITORY = Path(__file__).resolve().parent.parent
+RESULTS = REPOSITORY / "benchmarks" / "results"
 
 
 def time_call(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 7) -> float:
@@ -67,11 +70,33 @@ def add_load_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--load", default=None, help="what else ran on the cores meanwhile, in words ('idle' if nothing)")
 
 
+def measurement_spec(script: Path, argv: list[str]) -> tuple[dict, str]:
+    """A measurement's spec, ``{"script", "argv"}``, and its SHA-256: of the script's text and its arguments.
+
+    A benchmark script is the spec of what it measures (what runs, on what, how often, what is kept): its
+    record names the script (relative to the repository), its arguments and the hash of both, as a study
+    record names its spec's hash, so a page can say which text made a figure, and a changed script shows.
+    """
+    where = script.resolve()
+    shown = where.relative_to(REPOSITORY).as_posix() if where.is_relative_to(REPOSITORY) else where.as_posix()
+    digest = hashlib.sha256(where.read_bytes() + b"\0" + json.dumps(argv).encode())
+    return {"script": shown, "argv": argv}, digest.hexdigest()
+
+
 def record(name: str, payload: dict, load: str | None = None) -> Path:
-    """Write ``payload`` to ``benchmarks/results/<name>.json`` with the machine, the time and ``load`` (if given)."""
+    """Write ``payload`` to ``benchmarks/results/<name>.json`` with the machine, the time and ``load`` (if given).
+
+    The record also names its measurement spec: the script that wrote it (the ``__main__`` module), its
+    arguments and their SHA-256 (:func:`measurement_spec`).
+    """
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
-    payload = {"machine": machine(), "unix_time": time.time(), **({"load": load} if load else {}), **payload}
+    main_file = getattr(sys.modules["__main__"], "__file__", None)
+    spec: dict = {}
+    if main_file:
+        text, digest = measurement_spec(Path(main_file), sys.argv[1:])
+        spec = {"spec": text, "spec_sha256": digest}
+    payload = {"machine": machine(), "unix_time": time.time(), **spec, **({"load": load} if load else {}), **payload}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(payload, indent=2))
     os.replace(tmp, path)

@@ -1,0 +1,55 @@
+"""A benchmark script's record names its measurement spec: the script, its arguments and their SHA-256."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture
+def common(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> ModuleType:
+    """benchmarks/_common.py, loaded as a module of its own, writing its records under ``tmp_path``."""
+    spec = importlib.util.spec_from_file_location("bench_common_under_test", BENCHMARKS / "_common.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(module, "RESULTS", tmp_path / "results")
+    return module
+
+
+def _write_as(common: ModuleType, monkeypatch: pytest.MonkeyPatch, script: Path, argv: list[str]) -> dict:
+    """The record ``common.record`` writes when ``script`` runs as ``__main__`` with ``argv``."""
+    main = ModuleType("__main__")
+    main.__file__ = str(script)
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    monkeypatch.setattr(sys, "argv", [str(script), *argv])
+    return json.loads(common.record("probe", {"figure": 1.5}).read_text())
+
+
+def test_a_record_names_its_script_arguments_and_their_hash(common, monkeypatch, tmp_path) -> None:
+    script = tmp_path / "bench_probe.py"
+    script.write_text("print('measures something')\n")
+    rec = _write_as(common, monkeypatch, script, ["--size", "64"])
+    assert rec["figure"] == 1.5 and rec["machine"]["cpu"]
+    assert rec["spec"] == {"script": script.resolve().as_posix(), "argv": ["--size", "64"]}
+    expected = hashlib.sha256(script.read_bytes() + b"\0" + json.dumps(["--size", "64"]).encode()).hexdigest()
+    assert rec["spec_sha256"] == expected
+
+    other_args = _write_as(common, monkeypatch, script, ["--size", "128"])["spec_sha256"]
+    script.write_text("print('measures something else')\n")
+    other_text = _write_as(common, monkeypatch, script, ["--size", "64"])["spec_sha256"]
+    assert len({expected, other_args, other_text}) == 3
+
+
+def test_a_script_of_the_repository_is_named_relative_to_it(common) -> None:
+    shown, digest = common.measurement_spec(BENCHMARKS / "floor_fractions.py", [])
+    assert shown == {"script": "benchmarks/floor_fractions.py", "argv": []}
+    assert len(digest) == 64
