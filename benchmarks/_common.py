@@ -83,18 +83,32 @@ def measurement_spec(script: Path, argv: list[str]) -> tuple[dict, str]:
     return {"script": shown, "argv": argv}, digest.hexdigest()
 
 
+def without_load(argv: list[str]) -> list[str]:
+    """``argv`` less ``--load WORDS`` (or ``--load=WORDS``): what shared the cores is kept beside the spec, not in it."""
+    out: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--load":
+            skip = True
+        elif not arg.startswith("--load="):
+            out.append(arg)
+    return out
+
+
 def record(name: str, payload: dict, load: str | None = None) -> Path:
     """Write ``payload`` to ``benchmarks/results/<name>.json`` with the machine, the time and ``load`` (if given).
 
     The record also names its measurement spec: the script that wrote it (the ``__main__`` module), its
-    arguments and their SHA-256 (:func:`measurement_spec`).
+    arguments but ``--load`` and their SHA-256 (:func:`measurement_spec`).
     """
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
     main_file = getattr(sys.modules["__main__"], "__file__", None)
     spec: dict = {}
     if main_file:
-        text, digest = measurement_spec(Path(main_file), sys.argv[1:])
+        text, digest = measurement_spec(Path(main_file), without_load(sys.argv[1:]))
         spec = {"spec": text, "spec_sha256": digest}
     payload = {"machine": machine(), "unix_time": time.time(), **spec, **({"load": load} if load else {}), **payload}
     tmp = path.with_suffix(".json.tmp")

@@ -53,3 +53,13 @@ def test_a_script_of_the_repository_is_named_relative_to_it(common) -> None:
     shown, digest = common.measurement_spec(BENCHMARKS / "floor_fractions.py", [])
     assert shown == {"script": "benchmarks/floor_fractions.py", "argv": []}
     assert len(digest) == 64
+
+
+def test_what_shared_the_cores_is_not_part_of_the_spec(common, monkeypatch, tmp_path) -> None:
+    script = tmp_path / "bench_probe.py"
+    script.write_text("print('measures something')\n")
+    plain = _write_as(common, monkeypatch, script, ["--size", "64"])
+    loaded = _write_as(common, monkeypatch, script, ["--load", "two training processes", "--size", "64"])
+    inline = _write_as(common, monkeypatch, script, ["--size", "64", "--load=idle"])
+    assert loaded["spec"]["argv"] == inline["spec"]["argv"] == ["--size", "64"]
+    assert plain["spec_sha256"] == loaded["spec_sha256"] == inline["spec_sha256"]
