@@ -84,15 +84,19 @@ def measurement_spec(script: Path, argv: list[str]) -> tuple[dict, str]:
 
 
 def without_load(argv: list[str]) -> list[str]:
-    """``argv`` less ``--load WORDS`` (or ``--load=WORDS``): what shared the cores is kept beside the spec, not in it."""
+    """``argv`` less ``--load WORDS`` (or ``--load=WORDS``, or an abbreviation argparse takes, ``--lo`` and up).
+
+    What shared the cores is kept beside the spec, not in it.
+    """
     out: list[str] = []
     skip = False
     for arg in argv:
+        name = arg.split("=", 1)[0]
         if skip:
             skip = False
-        elif arg == "--load":
-            skip = True
-        elif not arg.startswith("--load="):
+        elif len(name) >= 4 and "--load".startswith(name):
+            skip = "=" not in arg
+        else:
             out.append(arg)
     return out
 

@@ -3,7 +3,8 @@
 The README's figures for "how long does this take" come from here, not from memory: each entry names the
 command, the directory it ran in and that checkout's commit, the CPU model, how many cores the machine had,
 what else ran on them (``--load``, in words: a number that depends on it means little without it) and the exit
-status. A failing command is recorded with its status, never as a timing of success.
+status. A failing command is recorded with its status, never as a timing of success. Each entry also names its
+measurement spec, the command and this script, with the SHA-256 of both (as benchmarks/_common.py's records do).
 
     python benchmarks/time_command.py readme-main-job --cwd /tmp/fresh --load "a study's two training processes" \
         -- 'python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/pimbrl compare burgers ...'
@@ -15,6 +16,7 @@ this process's stdout and stderr.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import subprocess
@@ -45,8 +47,15 @@ def _machine() -> dict[str, object]:
     return {"cpu": cpu_model(), "cpu_id": cpu_identity(), "cores": os.cpu_count()}
 
 
-def read_timings(path: Path = RECORD) -> list[dict[str, object]]:
-    """The recorded entries, oldest first (none where the file does not exist)."""
+def measurement_spec(command: str) -> tuple[dict[str, str], str]:
+    """The spec of a timing, ``{"script", "command"}``, and the SHA-256 of this script's text and the command."""
+    digest = hashlib.sha256(Path(__file__).resolve().read_bytes() + b"\0" + command.encode())
+    return {"script": "benchmarks/time_command.py", "command": command}, digest.hexdigest()
+
+
+def read_timings(path: Path | None = None) -> list[dict[str, object]]:
+    """The recorded entries of ``path`` (default: the record), oldest first (none where the file does not exist)."""
+    path = RECORD if path is None else path
     if not path.is_file():
         return []
     entries = json.loads(path.read_text())
@@ -74,9 +83,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     status = subprocess.run(command, shell=True, cwd=cwd).returncode
     wall = time.perf_counter() - t0
+    spec, digest = measurement_spec(command)
     entry = {
         "name": args.name,
         "command": command,
+        "spec": spec,
+        "spec_sha256": digest,
         "cwd": str(cwd),
         "commit": commit,
         "machine": _machine(),

@@ -72,3 +72,15 @@ def test_a_closed_standard_output_ends_the_command_quietly() -> None:
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141
     assert err == ""  # no traceback, no "Exception ignored" at exit, no error line (no run was stopped)
+
+
+def test_a_broken_pipe_that_is_not_standard_output_is_not_hidden(monkeypatch) -> None:
+    # a child process's pipe breaking is a real error: only a closed standard output ends quietly
+    import pimbrl.cli as cli
+
+    def broken(args) -> int:
+        raise BrokenPipeError("a child's pipe")
+
+    monkeypatch.setattr(cli, "_cmd_simulate", broken)
+    with pytest.raises(BrokenPipeError, match="a child's pipe"):
+        main(["simulate", "pendulum"])

@@ -61,5 +61,23 @@ def test_what_shared_the_cores_is_not_part_of_the_spec(common, monkeypatch, tmp_
     plain = _write_as(common, monkeypatch, script, ["--size", "64"])
     loaded = _write_as(common, monkeypatch, script, ["--load", "two training processes", "--size", "64"])
     inline = _write_as(common, monkeypatch, script, ["--size", "64", "--load=idle"])
-    assert loaded["spec"]["argv"] == inline["spec"]["argv"] == ["--size", "64"]
-    assert plain["spec_sha256"] == loaded["spec_sha256"] == inline["spec_sha256"]
+    short = _write_as(common, monkeypatch, script, ["--loa", "idle", "--size", "64"])
+    assert loaded["spec"]["argv"] == inline["spec"]["argv"] == short["spec"]["argv"] == ["--size", "64"]
+    assert plain["spec_sha256"] == loaded["spec_sha256"] == inline["spec_sha256"] == short["spec_sha256"]
+    assert common.without_load(["--log", "x", "--l", "y"]) == ["--log", "x", "--l", "y"]  # not --load
+
+
+def test_a_command_timing_names_its_command_and_hash(monkeypatch, tmp_path) -> None:
+    spec = importlib.util.spec_from_file_location("time_command_under_test", BENCHMARKS / "time_command.py")
+    assert spec is not None and spec.loader is not None
+    timer = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(timer)
+    monkeypatch.setattr(timer, "RESULTS", tmp_path)
+    monkeypatch.setattr(timer, "RECORD", tmp_path / "command_timings.json")
+    assert timer.main(["probe", "--cwd", str(BENCHMARKS.parent), "--load", "idle", "--", "true"]) == 0
+    assert timer.main(["probe", "--cwd", str(BENCHMARKS.parent), "--load", "idle", "--", "exit 3"]) == 3
+    first, second = json.loads((tmp_path / "command_timings.json").read_text())
+    assert first["spec"] == {"script": "benchmarks/time_command.py", "command": "true"}
+    text = (BENCHMARKS / "time_command.py").read_bytes()
+    assert first["spec_sha256"] == hashlib.sha256(text + b"\0" + b"true").hexdigest()
+    assert second["exit_status"] == 3 and second["spec_sha256"] != first["spec_sha256"]

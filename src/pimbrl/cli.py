@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import difflib
 import errno
 import json
 import os
 import re
+import select
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -1062,6 +1064,16 @@ def _checkpoint_note(args: argparse.Namespace) -> str:
     )
 
 
+def _stdout_closed() -> bool:
+    """Whether standard output is a pipe whose reader has gone (the kernel reports an error condition on it)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no file descriptor behind sys.stdout, or no poll()
+        return False
+
+
 def _silence_stdout() -> None:
     """Point standard output at the null device, so that what is still buffered for a closed pipe is dropped at exit."""
     try:
@@ -1102,10 +1114,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         status = int(args.func(args, extra) if getattr(args, "takes_extra", False) else args.func(args))
         sys.stdout.flush()  # a reader that went away surfaces here, not as a second error at exit
         return status
-    except BrokenPipeError:  # `pimbrl study status SPEC | head -1`: the reader has what it wanted
-        _silence_stdout()
+    except BrokenPipeError:
+        if not _stdout_closed():  # another pipe broke (a child process's): not the reader of our output
+            raise
+        _silence_stdout()  # `pimbrl study status SPEC | head -1`: the reader has what it wanted
         if note := _checkpoint_note(args):  # a run stopped by it can go on
-            print(f"pimbrl {args.command}: stopped: its standard output was closed{note}", file=sys.stderr)
+            with contextlib.suppress(OSError):  # standard error may have gone with it (`2>&1 | head`)
+                print(f"pimbrl {args.command}: stopped: its standard output was closed{note}", file=sys.stderr)
         return 141  # 128 + SIGPIPE, as a shell reports a command its pipe ended
     except (ConfigError, ValueError) as exc:
         print(f"{prefix} {exc}", file=sys.stderr)
