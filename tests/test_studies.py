@@ -312,6 +312,11 @@ def test_vectorised_intervals_are_rliables_to_the_last_bit() -> None:
         got = stats.probability_of_improvement(x, y, reps=300, seed=seed)
         ranked = stats._ranked(x, y)
         assert (got.value, got.low, got.high) == _rliable_interval(list(ranked), metrics.probability_of_improvement, 300, seed)
+    for seed, n in ((11, 10), (12, 3)):  # as many runs in both arms: both arrays' resamples come from one draw
+        x, y = np.round(rng.normal(size=n) * 10, 1), np.round(rng.normal(size=n) * 10, 1)
+        got = stats.probability_of_improvement(x, y, reps=300, seed=seed)
+        ranked = stats._ranked(x, y)
+        assert (got.value, got.low, got.high) == _rliable_interval(list(ranked), metrics.probability_of_improvement, 300, seed)
     big_x, big_y = np.round(rng.normal(size=(7, 1500)), 1), np.round(rng.normal(size=(7, 2000)), 1)  # chunks 3, 3, 1
     whole = [np.mean(a[:, None] > b[None, :]) + 0.5 * np.mean(a[:, None] == b[None, :]) for a, b in zip(big_x, big_y)]
     assert stats._improvements(big_x, big_y) == pytest.approx(whole, abs=1e-12)

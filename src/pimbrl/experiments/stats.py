@@ -75,9 +75,10 @@ def _resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.ndarray]:
     saved = np.random.get_state()
     np.random.seed(seed)
     try:
-        if len(sizes) == 1:  # consecutive draws of one bound are one draw of their total size
-            n = int(sizes[0])
-            return [np.random.choice(n, (reps, n), replace=True)]
+        if len(set(sizes)) == 1:  # consecutive draws of one bound are one draw of their total size
+            n, k = int(sizes[0]), len(sizes)
+            draws = np.random.choice(n, (reps, k, n), replace=True)  # resample r: array 0's n, array 1's n, ...
+            return [draws[:, j, :] for j in range(k)]
         out = [np.empty((reps, int(n)), dtype=np.int64) for n in sizes]
         for r in range(reps):
             for indices, n in zip(out, sizes):
