@@ -43,6 +43,14 @@ CONFIRMATORY_STUDIES = {
 CONTROLLERS = {"feedback", "mpc", "dpc"}
 
 
+def fraction_row(system: str, floor: float, study: str, arm: str, what: str, points: list[float]) -> dict:
+    """The share of ``points`` (an arm's returns of kind ``what``) below ``floor``, as a record row; printed too."""
+    below = sum(v < floor for v in points) / len(points)
+    print(f"{system} floor {floor:.2f}  {study:22s} {arm:20s} {below:6.1%} of {len(points)} {what} below")
+    return {"system": system, "floor": floor, "study": study, "arm": arm, "measure": what,
+            "points": len(points), "fraction_below_floor": below}  # fmt: skip
+
+
 def confirmatory_rows(system: str, name: str) -> list[dict]:
     """Each RL arm of a confirmatory record against the record's own feedback arm: test curves and holdout returns."""
     try:
@@ -66,12 +74,7 @@ def confirmatory_rows(system: str, name: str) -> list[dict]:
             "evaluations": [v for r in arm_runs for v in r["curve"]["return_mean"]],
             "holdout returns": [r["holdout_return"] for r in arm_runs],
         }
-        for what, points in measured.items():
-            floor = floors[what]
-            below = sum(v < floor for v in points) / len(points)
-            rows.append({"system": system, "floor": floor, "study": name, "arm": arm, "measure": what,
-                         "points": len(points), "fraction_below_floor": below})  # fmt: skip
-            print(f"{system} floor {floor:.2f}  {name:22s} {arm:20s} {below:6.1%} of {len(points)} {what} below")
+        rows += [fraction_row(system, floors[what], name, arm, what, points) for what, points in measured.items()]
     return rows
 
 
@@ -103,11 +106,7 @@ def main() -> None:
                 else:
                     points = [r["final_return"] for r in runs]
                     what = "final returns"
-                below = sum(v < floor for v in points) / len(points)
-                row = {"system": system, "floor": floor, "study": name, "arm": arm, "measure": what,
-                       "points": len(points), "fraction_below_floor": below}  # fmt: skip
-                out.append(row)
-                print(f"{system} floor {floor:.2f}  {name:22s} {arm:20s} {below:6.1%} of {len(points)} {what} below")
+                out.append(fraction_row(system, floor, name, arm, what, points))
     for system, name in CONFIRMATORY_STUDIES.items():
         out.extend(confirmatory_rows(system, name))
     path = _common.record("floor_fractions", {"command": "python benchmarks/floor_fractions.py", "rows": out})
