@@ -10,10 +10,12 @@ are this machine's, one thread; the ratios to TD3 at five updates are what carri
 
 from __future__ import annotations
 
+import argparse
+
 import _common  # noqa: F401  (pins every thread pool to one thread first)
 import numpy as np
 import torch
-from _common import record, time_call
+from _common import add_load_argument, record, time_call
 
 from pimbrl.agents import make_agent
 from pimbrl.agents.config import AGENT_TYPES
@@ -42,6 +44,9 @@ def random_batch(rng: np.random.Generator) -> Batch:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_load_argument(parser)
+    args = parser.parse_args()
     rng = np.random.default_rng(0)
     rows = {}
     for label, name, settings, utd in AGENTS:
@@ -64,10 +69,7 @@ def main() -> None:
     for label, row in rows.items():
         row["over_td3_utd5"] = row["s_per_real_step"] / base
         print(f"{label:18s} {row['s_per_real_step'] * 1e3:9.1f} ms per real step   {row['over_td3_utd5']:6.2f} x TD3 at 5")
-    path = record(
-        "agent_update_cost",
-        {"command": "python benchmarks/bench_agent_update.py", "obs": OBS, "act": ACT, "batch": BATCH, "agents": rows},
-    )
+    path = record("agent_update_cost", {"obs": OBS, "act": ACT, "batch": BATCH, "agents": rows}, load=args.load)
     print(f"wrote {path}")
 
 

@@ -11,10 +11,12 @@ figures on another.
 
 from __future__ import annotations
 
+import argparse
+
 import _common  # noqa: F401  (pins every thread pool to one thread first)
 import numpy as np
 import torch
-from _common import record, time_call
+from _common import add_load_argument, record, time_call
 
 from pimbrl.agents import TD3Config, make_agent
 from pimbrl.control.base import task_of
@@ -31,6 +33,9 @@ SYSTEMS = {
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_load_argument(parser)
+    args = parser.parse_args()
     rows = []
     for env, ((horizon, iterations, n), batch) in SYSTEMS.items():
         task = task_of(env, {})
@@ -55,7 +60,7 @@ def main() -> None:
                 f"state; MPC / RL = {step / rl:,.0f}x, MPC / DPC = {step / net:,.0f}x"
             )
         rows.append(row)
-    path = record("inference_cost", {"command": "python benchmarks/bench_inference.py", "systems": rows})
+    path = record("inference_cost", {"systems": rows}, load=args.load)
     print(f"wrote {path}")
 
 
