@@ -280,6 +280,11 @@ def test_model_eval_prints_its_splits_plainly(tmp_path, capsys) -> None:
     assert "  in-sample      MSE" in out and "  out-sample     MSE" in out and "in -sample" not in out
     summary = json.loads((tmp_path / "me" / "summary.json").read_text())
     assert summary["config"]["physics"] == json.loads(json.dumps(dataclasses.asdict(PhysicsLoss())))
+    from pimbrl.experiments.model_eval import spec_sha256
+
+    # the summary names its spec's hash: the one of what it records, and another for another setting
+    assert summary["spec_sha256"] == spec_sha256(summary["env"], summary["config"])
+    assert spec_sha256(summary["env"], {**summary["config"], "steps": 21}) != summary["spec_sha256"]
     with pytest.raises(SystemExit):  # the schedule of a training run's physics loss is not a model-eval flag
         main([*args, "--physics.start-after", "5"])
     from pimbrl.experiments.model_eval import check_physics_settings

@@ -10,11 +10,16 @@
    policy that collected the data).
 4. Write ``model_errors.csv`` (``model, split, mse``: one row per test transition), ``summary.json`` and
    ``model_errors.png`` (histograms of log10 MSE, in- and out-of-sample).
+
+``summary.json`` names its spec, the environment and the whole configuration, and their SHA-256
+(``spec_sha256``, of the canonical JSON: :func:`spec_sha256`), beside the machine (commit, CPU model), so a
+page that quotes it can say which settings made a figure.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -168,6 +173,12 @@ def check_physics_settings(cfg: ModelEvalConfig) -> None:
             raise ValueError(f"{flag} sets when a training run's physics loss starts; model-eval uses it from the first step")
 
 
+def spec_sha256(env_id: str, config: dict[str, Any]) -> str:
+    """SHA-256 of a model evaluation's spec: the environment and its configuration as canonical JSON."""
+    text = json.dumps({"env": env_id, "config": config}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def run_model_eval(
     env_id: str, run_dir: str | Path, config: ModelEvalConfig | None = None, log: Callable[[str], None] = print
 ) -> dict[str, Any]:
@@ -193,7 +204,9 @@ def run_model_eval(
     log(f"{env_id}: {len(train)} training, {len(test_in)} in-sample and {len(test_out)} out-of-sample test transitions")
 
     models = {}
-    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": dataclasses.asdict(cfg), "train_s": {}}
+    config = dataclasses.asdict(cfg)
+    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": config, "spec_sha256": spec_sha256(env_id, config)}
+    summary["train_s"] = {}
     sources = choose_sources(cfg.physics.sources, physics)
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
