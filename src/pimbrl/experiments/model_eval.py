@@ -205,8 +205,8 @@ def run_model_eval(
 
     models = {}
     config = dataclasses.asdict(cfg)
-    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": config, "spec_sha256": spec_sha256(env_id, config)}
-    summary["train_s"] = {}
+    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": config}
+    summary |= {"spec_sha256": spec_sha256(env_id, config), "train_s": {}}
     sources = choose_sources(cfg.physics.sources, physics)
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
