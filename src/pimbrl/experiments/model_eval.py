@@ -204,9 +204,9 @@ def run_model_eval(
     log(f"{env_id}: {len(train)} training, {len(test_in)} in-sample and {len(test_out)} out-of-sample test transitions")
 
     models = {}
-    config = dataclasses.asdict(cfg)
-    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": config}
-    summary |= {"spec_sha256": spec_sha256(env_id, config), "train_s": {}}
+    settings = dataclasses.asdict(cfg)
+    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": settings}
+    summary |= {"spec_sha256": spec_sha256(env_id, settings), "train_s": {}}
     sources = choose_sources(cfg.physics.sources, physics)
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
