@@ -1,0 +1,175 @@
+"""Which records behind the README and docs lack a spec hash, a commit or a CPU model: the provenance audit.
+
+A number on a page is as good as the record it comes from. A record qualifies when it names
+
+* its spec's SHA-256 (``spec_sha256``: a study's spec, a benchmark script's measurement spec, a model
+  evaluation's configuration),
+* the commit that made it (``machine.commit`` or ``provenance.commit``; for a study record, every run's too),
+* the CPU model (``machine.cpu`` or ``provenance.cpu``, not just ``x86_64``; for a study record, every run's).
+
+A page cites a record by its file name (``envs.json``) or by the name of a study whose record it is (a
+spec in benchmarks/studies, benchmarks/confirmatory or benchmarks/pending: its ``record.path`` for a study
+made before the study engine, else ``benchmarks/results/<name>.json``). ``command_timings.json`` is judged
+by its entries the page quotes (each "M min S s" of the page, matched to the second). The journal is a dated
+log and is not audited.
+
+    python benchmarks/provenance_audit.py            # prints the table
+    python benchmarks/provenance_audit.py --write    # also writes docs/provenance.md (tests check it is current)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SPEC_DIRS = ("benchmarks/studies", "benchmarks/confirmatory", "benchmarks/pending")
+PAGE = ROOT / "docs" / "provenance.md"
+#: a CPU entry that names no model
+NO_MODEL = {"", "x86_64", "unknown", "amd64", "aarch64"}
+#: a duration as the pages write one: "16 min 13 s"
+DURATION = re.compile(r"\b(\d+) min (\d+) s\b")
+#: a token that may name a record or a study
+TOKEN = re.compile(r"[A-Za-z0-9_+.\-]+")
+
+
+@dataclass(frozen=True)
+class Lack:
+    """What one record misses: a sorted tuple of ``spec hash``, ``commit``, ``CPU model``."""
+
+    record: str
+    missing: tuple[str, ...]
+
+
+def pages(root: Path = ROOT) -> list[Path]:
+    """The README and every Markdown page under docs/ but the journal and this audit's own page."""
+    docs = [p for p in sorted((root / "docs").rglob("*.md")) if "journal" not in p.relative_to(root / "docs").parts]
+    return [root / "README.md", *[p for p in docs if p.name != PAGE.name or p.parent != root / "docs"]]
+
+
+def _commit_and_cpu(entry: dict) -> tuple[bool, bool]:
+    """Whether a machine or provenance entry names a commit and a CPU model."""
+    commit = str(entry.get("commit") or "").strip()
+    cpu = str(entry.get("cpu") or "").strip()
+    return bool(commit) and commit != "unknown", cpu.lower() not in NO_MODEL
+
+
+def missing_of(record: dict) -> tuple[str, ...]:
+    """What a record (a JSON object) lacks of spec hash, commit and CPU model; empty when it qualifies."""
+    where = record.get("machine") or record.get("provenance") or {}
+    commit, cpu = _commit_and_cpu(where) if isinstance(where, dict) else (False, False)
+    if isinstance(record.get("commit"), str) and record["commit"] not in ("", "unknown"):
+        commit = True
+    runs = record.get("runs")
+    if isinstance(runs, list) and runs and all(isinstance(r, dict) and "provenance" in r for r in runs):
+        each = [_commit_and_cpu(r["provenance"] or {}) for r in runs]
+        commit = commit and all(c for c, _ in each)
+        cpu = cpu and all(c for _, c in each)
+    spec = isinstance(record.get("spec_sha256"), str) and re.fullmatch(r"[0-9a-f]{64}", record["spec_sha256"]) is not None
+    return tuple(name for name, ok in (("spec hash", spec), ("commit", commit), ("CPU model", cpu)) if not ok)
+
+
+def study_records(root: Path = ROOT) -> dict[str, str]:
+    """Each study spec's name -> the file name of its record in benchmarks/results/ (where it exists)."""
+    out: dict[str, str] = {}
+    for folder in SPEC_DIRS:
+        for path in sorted((root / folder).glob("*.yaml")):
+            spec = yaml.safe_load(path.read_text()) or {}
+            name = spec.get("name")
+            record = spec.get("record") if isinstance(spec.get("record"), dict) else None
+            results = (root / "benchmarks" / "results").resolve()
+            target = (path.parent / record["path"]).resolve() if record and "path" in record else results / f"{name}.json"
+            if name and target.exists() and target.parent == results:
+                out.setdefault(name, target.name)
+    return out
+
+
+def _quoted_timings(text: str, entries: list[dict]) -> list[dict]:
+    """The entries of command_timings.json whose wall-clock the page writes as "M min S s"."""
+    quoted = {int(m.group(1)) * 60 + int(m.group(2)) for m in DURATION.finditer(text)}
+    return [e for e in entries if e.get("exit_status") == 0 and round(float(e["wall_s"])) in quoted]
+
+
+def audit(root: Path = ROOT) -> dict[str, list[Lack]]:
+    """Each audited page (relative path) -> the records it cites that lack something, sorted by name."""
+    results = root / "benchmarks" / "results"
+    files = {p.name for p in results.glob("*.json")}
+    studies = study_records(root)
+    lacks: dict[str, tuple[str, ...]] = {}
+    for name in files - {"command_timings.json"}:
+        try:
+            record = json.loads((results / name).read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            lacks[name] = ("readable JSON",)
+            continue
+        lacks[name] = missing_of(record) if isinstance(record, dict) else ("spec hash", "commit", "CPU model")
+    timings_path = results / "command_timings.json"
+    timings = json.loads(timings_path.read_text()) if timings_path.exists() else []
+    out: dict[str, list[Lack]] = {}
+    for page in pages(root):
+        text = page.read_text()
+        cited: set[str] = set()
+        for token in TOKEN.findall(text):
+            token = token.rstrip(".")
+            if token in files:
+                cited.add(token)
+            for suffix in ("", "-exploratory", "-confirmatory"):
+                if suffix and token.endswith(suffix) and token[: -len(suffix)] in studies:
+                    cited.add(studies[token[: -len(suffix)]])
+                elif not suffix and token in studies:
+                    cited.add(studies[token])
+        found = [Lack(name, lacks[name]) for name in sorted(cited - {"command_timings.json"}) if lacks[name]]
+        short = sorted({m for e in _quoted_timings(text, timings) for m in missing_of(e)})
+        if short:
+            found.append(Lack("command_timings.json (its quoted entries)", tuple(short)))
+        if found:
+            out[page.relative_to(root).as_posix()] = sorted(found, key=lambda lack: lack.record)
+    return out
+
+
+def render(found: dict[str, list[Lack]]) -> str:
+    """docs/provenance.md: the audit as a page, one row per record with the pages that cite it."""
+    by_record: dict[str, tuple[tuple[str, ...], list[str]]] = {}
+    for page, lacks in found.items():
+        for lack in lacks:
+            by_record.setdefault(lack.record, (lack.missing, []))[1].append(page)
+    lines = [
+        "# Provenance audit: records that lack a spec hash, a commit or a CPU model",
+        "",
+        "Generated by `python benchmarks/provenance_audit.py --write` (the test suite checks that it is current).",
+        "A number on a page is as good as its record; a record qualifies when it names its spec's SHA-256, the",
+        "commit that made it and the CPU model (a study record: every run's commit and CPU too). Each record below",
+        "is cited by the pages beside it, by file name or by the name of the study whose record it is, and does",
+        "not qualify; the pages say so where they quote it. The journal is a dated log and is not audited. How",
+        "these records are to be replaced is in",
+        "[confirmatory.md](confirmatory.md#numbers-from-records-that-name-their-spec-commit-and-cpu-model).",
+        "",
+        f"{len(by_record)} such records, cited by {len(found)} pages.",
+        "",
+        "| record | lacks | cited by |",
+        "|---|---|---|",
+    ]
+    for record, (missing, cited_by) in sorted(by_record.items()):
+        lines.append(f"| `{record}` | {', '.join(missing)} | {', '.join(sorted(cited_by))} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write", action="store_true", help=f"write {PAGE.relative_to(ROOT)}")
+    args = parser.parse_args()
+    text = render(audit())
+    print(text, end="")
+    if args.write:
+        PAGE.write_text(text)
+        print(f"wrote {PAGE.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,71 @@
+"""The provenance audit: which records behind the pages lack a spec hash, a commit or a CPU model."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+HASH = "ab" * 32
+
+
+@pytest.fixture(scope="module")
+def audit() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("provenance_audit_under_test", ROOT / "benchmarks" / "provenance_audit.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass looks its module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_record_qualifies_only_with_spec_hash_commit_and_cpu_model(audit) -> None:
+    good = {"spec_sha256": HASH, "machine": {"commit": "447f5b3", "cpu": "AMD EPYC"}}
+    assert audit.missing_of(good) == ()
+    assert audit.missing_of({**good, "spec_sha256": "not a hash"}) == ("spec hash",)
+    assert audit.missing_of({**good, "machine": {"commit": "unknown", "cpu": "x86_64"}}) == ("commit", "CPU model")
+    assert audit.missing_of({"rows": []}) == ("spec hash", "commit", "CPU model")
+    # a study record: every run names its commit and CPU too
+    study = {"spec_sha256": HASH, "provenance": {"commit": "c1", "cpu": "Intel(R) Xeon(R) Processor"}}
+    runs = [{"provenance": {"commit": "c1", "cpu": "AMD EPYC"}}, {"provenance": {"commit": "c2", "cpu": "x86_64"}}]
+    assert audit.missing_of({**study, "runs": runs[:1]}) == ()
+    assert audit.missing_of({**study, "runs": runs}) == ("CPU model",)
+    # a timing entry names its commit at the top
+    assert audit.missing_of({"spec_sha256": HASH, "commit": "c1", "machine": {"cpu": "AMD EPYC"}}) == ()
+
+
+def test_a_page_cites_records_by_file_name_by_study_name_and_by_quoted_timing(audit, tmp_path) -> None:
+    results = tmp_path / "benchmarks" / "results"
+    results.mkdir(parents=True)
+    (results / "old.json").write_text(json.dumps({"rows": []}))
+    (results / "new.json").write_text(json.dumps({"spec_sha256": HASH, "machine": {"commit": "c", "cpu": "AMD EPYC"}}))
+    (results / "legacy_compare.json").write_text(json.dumps({"env": "x"}))
+    entries = [{"wall_s": 973.4, "exit_status": 0, "machine": {"cpu": "AMD EPYC"}, "commit": "c"}]
+    (results / "command_timings.json").write_text(json.dumps(entries))
+    studies = tmp_path / "benchmarks" / "studies"
+    studies.mkdir()
+    (studies / "legacy.yaml").write_text("name: legacy-study\nrecord:\n  path: ../results/legacy_compare.json\n")
+    for folder in ("confirmatory", "pending"):
+        (tmp_path / "benchmarks" / folder).mkdir()
+    (tmp_path / "docs" / "journal").mkdir(parents=True)
+    (tmp_path / "README.md").write_text("It took 16 min 13 s (command_timings.json); new.json says 3.\n")
+    (tmp_path / "docs" / "a.md").write_text("From `old.json` and [legacy](results.md#legacy-study-exploratory).\n")
+    (tmp_path / "docs" / "journal" / "day.md").write_text("old.json, history, not audited\n")
+    found = audit.audit(tmp_path)
+    assert sorted(found) == ["README.md", "docs/a.md"]
+    assert [lack.record for lack in found["docs/a.md"]] == ["legacy_compare.json", "old.json"]
+    assert [(lack.record, lack.missing) for lack in found["README.md"]] == [
+        ("command_timings.json (its quoted entries)", ("spec hash",))
+    ]
+    page = audit.render(found)
+    assert "| `old.json` | spec hash, commit, CPU model | docs/a.md |" in page and "2 pages" in page
+
+
+def test_the_audit_page_is_current(audit) -> None:
+    expected = audit.render(audit.audit())
+    assert (ROOT / "docs" / "provenance.md").read_text() == expected, "run: python benchmarks/provenance_audit.py --write"
