@@ -139,7 +139,9 @@ def main(roots: list[Path], load: str | None = None) -> None:
     if evals:
         print(f"## model errors (next-state MSE)\n\n{model_eval_table(evals)}")
     for path in sorted(RESULTS.glob("model_study_*.json")):
-        print(f"## {path.stem}\n\n{model_study_table(json.loads(path.read_text()))}\n")
+        record = json.loads(path.read_text())
+        if "seeds" in record:  # a labels study (run_model_study.py); the partial-physics model studies have no table here
+            print(f"## {path.stem}\n\n{model_study_table(record)}\n")
 
 
 if __name__ == "__main__":
