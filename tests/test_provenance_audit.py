@@ -35,6 +35,8 @@ def test_a_record_qualifies_only_with_spec_hash_commit_and_cpu_model(audit) -> N
     runs = [{"provenance": {"commit": "c1", "cpu": "AMD EPYC"}}, {"provenance": {"commit": "c2", "cpu": "x86_64"}}]
     assert audit.missing_of({**study, "runs": runs[:1]}) == ()
     assert audit.missing_of({**study, "runs": runs}) == ("CPU model",)
+    assert audit.missing_of({**study, "runs": [runs[0], {"seed": 3}]}) == ("commit", "CPU model")  # a run without one
+    assert audit.missing_of({**study, "provenance": {"commit": "c1", "cpu": "unknown"}, "runs": runs[:1]}) == ("CPU model",)
     # a timing entry names its commit at the top
     assert audit.missing_of({"spec_sha256": HASH, "commit": "c1", "machine": {"cpu": "AMD EPYC"}}) == ()
 
@@ -45,25 +47,43 @@ def test_a_page_cites_records_by_file_name_by_study_name_and_by_quoted_timing(au
     (results / "old.json").write_text(json.dumps({"rows": []}))
     (results / "new.json").write_text(json.dumps({"spec_sha256": HASH, "machine": {"commit": "c", "cpu": "AMD EPYC"}}))
     (results / "legacy_compare.json").write_text(json.dumps({"env": "x"}))
-    entries = [{"wall_s": 973.4, "exit_status": 0, "machine": {"cpu": "AMD EPYC"}, "commit": "c"}]
+    entries = [
+        {"wall_s": 973.4, "exit_status": 0, "machine": {"cpu": "AMD EPYC"}, "commit": "c"},  # 16 min 13 s, no hash
+        {"wall_s": 61.0, "exit_status": 1, "machine": {"cpu": "AMD EPYC"}, "commit": "c"},  # failed: not a timing
+        {"wall_s": 120.2, "exit_status": 0, "machine": {"cpu": "AMD EPYC"}, "commit": "c"},  # 2 min 0 s, no hash ...
+        {"wall_s": 119.8, "exit_status": 0, "machine": {"cpu": "AMD EPYC"}, "commit": "c", "spec_sha256": HASH},  # ... or one
+    ]
     (results / "command_timings.json").write_text(json.dumps(entries))
     studies = tmp_path / "benchmarks" / "studies"
     studies.mkdir()
     (studies / "legacy.yaml").write_text("name: legacy-study\nrecord:\n  path: ../results/legacy_compare.json\n")
+    (studies / "plus.yaml").write_text("name: partial-x+30\nrecord:\n  path: ../results/plus_old.json\n")
+    (results / "plus_old.json").write_text("{}")
     for folder in ("confirmatory", "pending"):
         (tmp_path / "benchmarks" / folder).mkdir()
+    # the same name pending again through the engine: while both records exist, a citation cites both
+    (tmp_path / "benchmarks" / "pending" / "legacy.yaml").write_text("name: legacy-study\nkind: exploratory\n")
+    (results / "legacy-study.json").write_text(json.dumps({"rows": 1}))
     (tmp_path / "docs" / "journal").mkdir(parents=True)
-    (tmp_path / "README.md").write_text("It took 16 min 13 s (command_timings.json); new.json says 3.\n")
+    readme = "It took 16 min 13 s (command_timings.json), 1 min 1 s and 2 min 0 s; new.json says 3; ok.json is none.\n"
+    (tmp_path / "README.md").write_text(readme)
     (tmp_path / "docs" / "a.md").write_text("From `old.json` and [legacy](results.md#legacy-study-exploratory).\n")
+    (tmp_path / "docs" / "b.md").write_text("See [x](results.md#partial-x30-exploratory) and benchmarks/studies/legacy.yaml.\n")
     (tmp_path / "docs" / "journal" / "day.md").write_text("old.json, history, not audited\n")
     found = audit.audit(tmp_path)
-    assert sorted(found) == ["README.md", "docs/a.md"]
-    assert [lack.record for lack in found["docs/a.md"]] == ["legacy_compare.json", "old.json"]
+    assert sorted(found) == ["README.md", "docs/a.md", "docs/b.md"]
+    assert [lack.record for lack in found["docs/a.md"]] == ["legacy-study.json", "legacy_compare.json", "old.json"]
+    # an anchor drops the "+"; a spec's file name cites its study
+    assert [lack.record for lack in found["docs/b.md"]] == ["legacy-study.json", "legacy_compare.json", "plus_old.json"]
+    # 16 min 13 s lacks the hash; 1 min 1 s failed; 2 min 0 s has a qualifying entry of the same second
     assert [(lack.record, lack.missing) for lack in found["README.md"]] == [
         ("command_timings.json (its quoted entries)", ("spec hash",))
     ]
+    entries[0]["spec_sha256"] = HASH
+    (results / "command_timings.json").write_text(json.dumps(entries))
+    assert "README.md" not in audit.audit(tmp_path)
     page = audit.render(found)
-    assert "| `old.json` | spec hash, commit, CPU model | docs/a.md |" in page and "2 pages" in page
+    assert "| `old.json` | spec hash, commit, CPU model | docs/a.md |" in page and "3 pages" in page
 
 
 def test_the_audit_page_is_current(audit) -> None:
