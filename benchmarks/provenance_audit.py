@@ -50,7 +50,7 @@ class Lack:
 def pages(root: Path = ROOT) -> list[Path]:
     """The README and every Markdown page under docs/ but the journal and this audit's own page."""
     docs = [p for p in sorted((root / "docs").rglob("*.md")) if "journal" not in p.relative_to(root / "docs").parts]
-    return [root / "README.md", *[p for p in docs if p.name != PAGE.name or p.parent != root / "docs"]]
+    return [root / "README.md", *[p for p in docs if p != root / "docs" / PAGE.name]]
 
 
 def _commit_and_cpu(entry: dict) -> tuple[bool, bool]:
@@ -88,12 +88,12 @@ def study_records(root: Path = ROOT) -> dict[str, set[str]]:
     a citation of the name cites both records while both exist.
     """
     out: dict[str, set[str]] = {}
+    results = (root / "benchmarks" / "results").resolve()
     for folder in SPEC_DIRS:
         for path in sorted((root / folder).glob("*.yaml")):
             spec = yaml.safe_load(path.read_text()) or {}
             name = spec.get("name")
             record = spec.get("record") if isinstance(spec.get("record"), dict) else None
-            results = (root / "benchmarks" / "results").resolve()
             target = (path.parent / record["path"]).resolve() if record and "path" in record else results / f"{name}.json"
             if name and target.exists() and target.parent == results:
                 for key in (name, slug(name), path.stem):  # the study's name, its anchor, its spec's file name
@@ -139,10 +139,10 @@ def audit(root: Path = ROOT) -> dict[str, list[Lack]]:
             token = token.rstrip(".")
             if token in files:
                 cited.add(token)
-            for suffix in ("", "-exploratory", "-confirmatory", ".yaml"):
-                name = token[: -len(suffix)] if suffix and token.endswith(suffix) else token if not suffix else None
-                if name is not None:
-                    cited |= studies.get(name, set()) | studies.get(slug(name), set())
+            # a study's name, its section anchor or its spec's file name
+            names = [token, *(token[: -len(s)] for s in ("-exploratory", "-confirmatory", ".yaml") if token.endswith(s))]
+            for name in names:
+                cited |= studies.get(name, set()) | studies.get(slug(name), set())
         found = [Lack(name, lacks[name]) for name in sorted(cited - {"command_timings.json"}) if lacks[name]]
         short = sorted(_timing_lacks(text, timings))
         if short:

@@ -205,8 +205,13 @@ def run_model_eval(
 
     models = {}
     settings = dataclasses.asdict(cfg)
-    summary: dict[str, Any] = {"env": env_id, "machine": provenance(), "config": settings}
-    summary |= {"spec_sha256": spec_sha256(env_id, settings), "train_s": {}}
+    summary: dict[str, Any] = {
+        "env": env_id,
+        "machine": provenance(),
+        "config": settings,
+        "spec_sha256": spec_sha256(env_id, settings),
+        "train_s": {},
+    }
     sources = choose_sources(cfg.physics.sources, physics)
     for name in ("data", "physics"):
         torch.manual_seed(cfg.seed)
