@@ -101,6 +101,16 @@ def study_records(root: Path = ROOT) -> dict[str, set[str]]:
     return out
 
 
+def quoted_durations(text: str) -> list[tuple[str, int]]:
+    """Each "M min S s" that ``text`` writes, with its length in seconds."""
+    return [(m.group(0), int(m.group(1)) * 60 + int(m.group(2))) for m in DURATION.finditer(text)]
+
+
+def measured_seconds(entries: list[dict]) -> set[int]:
+    """The wall-clocks, to the second, of the successful entries of command_timings.json."""
+    return {round(float(e["wall_s"])) for e in entries if e.get("exit_status") == 0}
+
+
 def _timing_lacks(text: str, entries: list[dict]) -> set[str]:
     """What the entries of command_timings.json whose wall-clock the page writes as "M min S s" lack.
 
@@ -108,8 +118,7 @@ def _timing_lacks(text: str, entries: list[dict]) -> set[str]:
     other entries of the same second lack; one that no successful entry measured is the docs test's concern.
     """
     lacks: set[str] = set()
-    for m in DURATION.finditer(text):
-        seconds = int(m.group(1)) * 60 + int(m.group(2))
+    for _, seconds in quoted_durations(text):
         matching = [missing_of(e) for e in entries if e.get("exit_status") == 0 and round(float(e["wall_s"])) == seconds]
         if matching and all(matching):
             lacks |= set(matching[0])

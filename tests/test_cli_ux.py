@@ -309,6 +309,25 @@ def test_an_unknown_name_suggests_the_closest(argv, expected, capsys) -> None:
     assert expected in _error_line(capsys)
 
 
+def test_main_reuses_one_parser_and_no_call_sees_another_s_arguments(monkeypatch, capsys) -> None:
+    import pimbrl.cli as cli
+
+    seen: list[list[str]] = []
+
+    def load_and_mutate(args) -> None:  # a handler that changes its list argument in place
+        seen.append(list(args.imports))
+        args.imports.append("changed-by-a-handler")
+
+    monkeypatch.setattr(cli, "_load_systems", load_and_mutate)
+    first = cli._shared_parser()
+    assert main(["train", "pendulum", "--print-config"]) == 0
+    assert main(["train", "pendulum", "--import", "a_module", "--print-config"]) == 0
+    assert main(["train", "pendulum", "--print-config"]) == 0
+    assert seen == [[], ["a_module"], []]
+    assert cli._shared_parser() is first and cli.build_parser() is not first
+    capsys.readouterr()
+
+
 # ---------------------------------------------------------------------------------- start-up time
 def test_help_and_argument_errors_do_not_import_torch() -> None:
     code = (

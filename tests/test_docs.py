@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from .test_provenance_audit import load_audit
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: "stop 21", "stops 21 and 22", "issue 13", "Issues 12": numbering a reader outside the project cannot follow
@@ -218,14 +220,14 @@ def test_every_spec_with_a_study_record_is_the_text_that_record_was_made_under()
 
 
 # ------------------------------------------------------------------------- the README's timings
-#: a duration as the README writes one: "16 min 13 s"
-DURATION = re.compile(r"\b(\d+) min (\d+) s\b")
-
-
 def untimed_durations(readme: str, entries: list[dict]) -> list[str]:
-    """Each "M min S s" of the README that no successful entry of command_timings.json measured (to the second)."""
-    measured = {round(float(e["wall_s"])) for e in entries if e.get("exit_status") == 0}
-    return [m.group(0) for m in DURATION.finditer(readme) if int(m.group(1)) * 60 + int(m.group(2)) not in measured]
+    """Each "M min S s" of the README that no successful entry of command_timings.json measured (to the second).
+
+    The provenance audit reads the durations of the pages the same way (benchmarks/provenance_audit.py).
+    """
+    audit = load_audit()
+    measured = audit.measured_seconds(entries)
+    return [quoted for quoted, seconds in audit.quoted_durations(readme) if seconds not in measured]
 
 
 def test_every_timing_in_the_readme_is_a_recorded_measurement() -> None:

@@ -14,14 +14,22 @@ ROOT = Path(__file__).resolve().parents[1]
 HASH = "ab" * 32
 
 
-@pytest.fixture(scope="module")
-def audit() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("provenance_audit_under_test", ROOT / "benchmarks" / "provenance_audit.py")
+def load_audit() -> ModuleType:
+    """benchmarks/provenance_audit.py as a module (loaded once per test process)."""
+    name = "provenance_audit_under_test"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "provenance_audit.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass looks its module up there
+    sys.modules[name] = module  # its dataclass looks its module up there
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def audit() -> ModuleType:
+    return load_audit()
 
 
 def test_a_record_qualifies_only_with_spec_hash_commit_and_cpu_model(audit) -> None:

@@ -240,19 +240,30 @@ def test_at_least_200_cases() -> None:
     assert len(all_mutations()) >= 200
 
 
-def test_malformed_run_directories_give_no_traceback_hang_or_escape(tmp_path_factory) -> None:
+SHARDS = 4  # the cases are split so that the test processes share them (each shard about 30 s)
+
+
+@pytest.fixture(scope="module")
+def fuzz_base(tmp_path_factory) -> Path:
+    """A folder with one finished tiny run (``template``) and a module to plant (``planted``), per test process."""
     base = tmp_path_factory.mktemp("fuzz")
+    assert main(["train", *ARGS, "--run-dir", str(base / "template")]) == 0
+    (base / "planted").mkdir()
+    (base / "planted" / f"{PLANTED}.py").write_text(f"open({str(base / 'imported')!r}, 'w').close()\n")
+    return base
+
+
+@pytest.mark.parametrize("shard", range(SHARDS))
+def test_malformed_run_directories_give_no_traceback_hang_or_escape(shard: int, fuzz_base: Path) -> None:
+    base = fuzz_base
     template = base / "template"
-    assert main(["train", *ARGS, "--run-dir", str(template)]) == 0
     planted = base / "planted"
-    planted.mkdir()
     marker = base / "imported"
-    (planted / f"{PLANTED}.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
     sys.path.insert(0, str(planted))
     problems: list[str] = []
     counts = {"cases": 0, "commands": 0, "exit 0": 0, "exit 2": 0}
     try:
-        for i, (label, mutate) in enumerate(all_mutations().items()):
+        for i, (label, mutate) in list(enumerate(all_mutations().items()))[shard::SHARDS]:
             case = base / f"case{i}"
             root = case / "C"
             run = root / "mfrl" / "seed0"
@@ -292,6 +303,6 @@ def test_malformed_run_directories_give_no_traceback_hang_or_escape(tmp_path_fac
             shutil.rmtree(case, ignore_errors=True)
     finally:
         sys.path.remove(str(planted))
-    print(f"fuzzed run directories: {counts}")
-    assert counts["cases"] >= 200
+    print(f"fuzzed run directories, shard {shard + 1} of {SHARDS}: {counts}")
+    assert counts["cases"] == len(range(shard, len(all_mutations()), SHARDS))
     assert not problems, "\n".join(problems[:40])
