@@ -82,5 +82,6 @@ def test_a_broken_pipe_that_is_not_standard_output_is_not_hidden(monkeypatch) ->
         raise BrokenPipeError("a child's pipe")
 
     monkeypatch.setattr(cli, "_cmd_simulate", broken)
+    monkeypatch.setattr(cli, "_shared_parser", cli.build_parser)  # a parser that calls the patched handler
     with pytest.raises(BrokenPipeError, match="a child's pipe"):
         main(["simulate", "pendulum"])

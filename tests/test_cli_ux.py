@@ -96,6 +96,7 @@ def test_an_os_error_without_a_file_is_not_swallowed(monkeypatch) -> None:
         raise OSError("a programming error")
 
     monkeypatch.setattr(cli, "_cmd_eval", broken)
+    monkeypatch.setattr(cli, "_shared_parser", cli.build_parser)  # a parser that calls the patched handler
     with pytest.raises(OSError, match="a programming error"):
         main(["eval", "somewhere"])
 

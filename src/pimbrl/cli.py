@@ -1089,8 +1089,9 @@ def _silence_stdout() -> None:
 def _shared_parser() -> argparse.ArgumentParser:
     """The parser :func:`main` uses, built once per process (about 20 ms and 212 arguments a build).
 
-    Parsing reads the parser and writes only the namespace it returns, so one instance serves every call; a
-    caller who changes a parser builds its own with :func:`build_parser`.
+    Parsing reads the parser and writes only the namespace it returns, so one instance serves every call. Each
+    command's handler is bound when the parser is built: a caller who replaces a handler, or changes a parser,
+    builds its own with :func:`build_parser`.
     """
     return build_parser()
 
