@@ -106,9 +106,14 @@ def quoted_durations(text: str) -> list[tuple[str, int]]:
     return [(m.group(0), int(m.group(1)) * 60 + int(m.group(2))) for m in DURATION.finditer(text)]
 
 
+def measured_second(entry: dict) -> int | None:
+    """An entry of command_timings.json's wall-clock to the second; ``None`` for a command that failed."""
+    return round(float(entry["wall_s"])) if entry.get("exit_status") == 0 else None
+
+
 def measured_seconds(entries: list[dict]) -> set[int]:
     """The wall-clocks, to the second, of the successful entries of command_timings.json."""
-    return {round(float(e["wall_s"])) for e in entries if e.get("exit_status") == 0}
+    return {s for e in entries if (s := measured_second(e)) is not None}
 
 
 def _timing_lacks(text: str, entries: list[dict]) -> set[str]:
@@ -119,7 +124,7 @@ def _timing_lacks(text: str, entries: list[dict]) -> set[str]:
     """
     lacks: set[str] = set()
     for _, seconds in quoted_durations(text):
-        matching = [missing_of(e) for e in entries if e.get("exit_status") == 0 and round(float(e["wall_s"])) == seconds]
+        matching = [missing_of(e) for e in entries if measured_second(e) == seconds]
         if matching and all(matching):
             lacks |= set(matching[0])
     return lacks
