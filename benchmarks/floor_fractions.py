@@ -26,10 +26,9 @@ STUDIES = ROOT / "studies"
 #: the control studies, until the pages are generated again (benchmarks/pending/README.md)
 PENDING = ROOT / "pending"
 #: the control study holding each system's floor, and the exploratory RL studies read against it (records made
-#: before the study engine only where no confirmatory record of the system exists yet: Cart-Pole, KS)
+#: before the study engine only where no confirmatory record of the system exists yet: KS)
 FLOORS = {
     "pimbrl/Burgers-v0": ("control-pendulum-burgers", ["readme-main"]),
-    "pimbrl/CartPole-v0": ("control-cartpole", ["cartpole-compare"]),
     "pimbrl/KuramotoSivashinsky-v0": ("control-ks", ["ks-compare-55", "ks-headline", "ks-selection"]),
 }
 CONFIRMATORY = ROOT / "confirmatory"
