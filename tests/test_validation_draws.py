@@ -3,8 +3,9 @@
 Every system has validation initial states disjoint from its test states (KS: a validation pool from runs of
 its own seed stream; the others: draws from a seed stream no evaluation seed reaches). The switch to
 model-free fine-tuning (``finetune.at_return``) reads the mean return on those, so two runs that differ
-only in their test set (number of test episodes and evaluation seed) train identically, step for step, on
-every system, while the switch fires in both at the same step.
+only in their test set (number of test episodes and evaluation seed) train identically, step for step, while
+the switch fires in both at the same step: on one system of each kind (``TRAINED``), the draws being checked
+on every system.
 """
 
 from __future__ import annotations
@@ -63,12 +64,6 @@ CASES = {
         "-40",
         (("2", "5"), ("6", "6")),
     ),
-    "allen-cahn": (
-        ["--import", EXAMPLES["allen-cahn"], "--method", "mbrl", "--steps", "600", "--warmup-steps", "100",
-         "--update-after", "100", "--eval-every", "100", "--model.start-after", "100"],
-        "-56",
-        (("2", "5"), ("6", "6")),
-    ),
 }  # fmt: skip
 
 
@@ -95,8 +90,14 @@ def _agent_tensors(run: Path) -> list[torch.Tensor]:
     return out
 
 
+#: the systems the training test runs on: one of each path a system's draws come by (a built-in ODE, a
+#: built-in PDE, KS's pool, a system of a user's own); the draws of every system are checked below, and the
+#: switch reads them through the same loop whatever the system (Pendulum's case runs in the checkpoint test)
+TRAINED = ["burgers", "cartpole", "ks", "duffing"]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("env", list(CASES))
+@pytest.mark.parametrize("env", TRAINED)
 def test_a_run_trains_the_same_whatever_its_test_set(env: str, tmp_path) -> None:
     flags, threshold, test_sets = CASES[env]
     runs = []
