@@ -113,22 +113,33 @@ def test_the_checks_catch_what_they_are_for() -> None:
 
 # ------------------------------------------------------------------------- confirmatory verdicts
 #: a row of docs/results.md's table of confirmatory hypotheses: | [study](#...) | id | claim | where | measure | poi | verdict |
-VERDICT_ROW = re.compile(r"^\| \[([^\]]+)\]\(#[^)]*\) \| ([^|]+?) \| [^|]*\| ([^|]+?) \| [^|]*\| [^|]*\| ([^|]+?) \|$", re.M)
+VERDICT_ROW = re.compile(r"^\| \[([^\]]+)\]\(#[^)]*\) \| ([^|]+?) \| [^|]*\| ([^|]+?) \| [^|]*\| ([^|]+?) \| ([^|]+?) \|$", re.M)
+#: a probability of improvement with its interval, as the results page and the README write it
+POI = re.compile(r"\d\.\d\d\s+\[\d\.\d\d,\s+\d\.\d\d\]")
 
 
 def readme_disagreements(results: str, readme: str) -> list[str]:
     """Each confirmatory verdict of the generated results page that README's Findings do not state.
 
     The README states each as ``**ID** (STUDY, WHERE): VERDICT`` on one line (the verdict's words up to any
-    parenthesis, e.g. ``inconclusive``).
+    parenthesis, e.g. ``inconclusive``), and the first ``P = x [lo, hi]`` of that bullet (a line break may fall
+    inside it) is the hypothesis's probability of improvement as the results page has it.
     """
     findings = readme.split("## Findings", 1)[-1].split("\n## ", 1)[0]
     missing = []
-    for study, hid, where, verdict in VERDICT_ROW.findall(results):
+    for study, hid, where, poi, verdict in VERDICT_ROW.findall(results):
         word = verdict.split(" (")[0].strip()
         pattern = rf"\*\*{re.escape(hid.strip())}\*\* \({re.escape(study)}, {re.escape(where.strip())}\): {re.escape(word)}\b"
-        if not re.search(pattern, findings):
+        found = re.search(pattern, findings)
+        if not found:
             missing.append(f"{hid.strip()} ({study}, {where.strip()}): {word}")
+            continue
+        bullet = re.split(r"\n(?:- |\n)", findings[found.end() :], maxsplit=1)[0]
+        stated = re.search(r"P = (" + POI.pattern + ")", bullet)
+        expected = POI.search(poi)
+        said = " ".join(stated.group(1).split()) if stated else None
+        if expected and said != expected.group(0):
+            missing.append(f"{hid.strip()} ({study}, {where.strip()}): P = {expected.group(0)}, not {said or 'unstated'}")
     return missing
 
 
@@ -138,6 +149,13 @@ def test_the_readme_findings_state_every_confirmatory_verdict_of_the_results_pag
     assert readme_disagreements(row, readme) == []
     assert readme_disagreements(row, readme.replace("inconclusive", "supported")) == ["H1a (c-b, Burgers-v0): inconclusive"]
     assert readme_disagreements(row, "## Findings\n\n## Other\n- **H1a** (c-b, Burgers-v0): inconclusive\n") != []
+    wrong = readme.replace("0.61 [0.40, 0.80]", "0.61 [0.40, 0.81]")
+    assert readme_disagreements(row, wrong) == ["H1a (c-b, Burgers-v0): P = 0.61 [0.40, 0.80], not 0.61 [0.40, 0.81]"]
+    # the P of the next bullet is not this one's
+    nxt = "# x\n\n## Findings\n\n- **H1a** (c-b, Burgers-v0): inconclusive.\n- **H1b** (c-b, Burgers-v0): P = 0.61 [0.40, 0.80]\n"
+    assert readme_disagreements(row, nxt) == ["H1a (c-b, Burgers-v0): P = 0.61 [0.40, 0.80], not unstated"]
+    broken = readme.replace("P = 0.61 [0.40, 0.80]", "P = 0.61\n  [0.40, 0.80]")  # a line break inside it
+    assert readme_disagreements(row, broken) == []
     results = (ROOT / "docs" / "results.md").read_text()
     assert readme_disagreements(results, (ROOT / "README.md").read_text()) == [], "README Findings must state these verdicts"
 
