@@ -3,13 +3,16 @@
 #
 #   benchmarks/commit_archives.sh [--every MINUTES] SPEC...      # from the repository root; Ctrl-C ends it
 #
-# Every MINUTES (default 10), for each SPEC whose run directory exists (runs/<study name>), it runs
-# `pimbrl study archive SPEC` and, where the archive (archive/<study name> beside the spec) changed, commits
-# that folder alone: "Archive: NAME N of TOTAL" (N the archived runs, TOTAL the spec's runs). Nothing else
-# in the working tree is staged or committed. A commit that fails (another git process holds the index) is
-# tried again five times, five seconds apart, then left to the next round. `pimbrl study run SPEC
-# --keep-archive` archives each run as it finishes; this script adds the commits (docs/studies.md).
+# Every MINUTES (default 10), for each SPEC, it runs `pimbrl study archive SPEC` (which says so and does
+# nothing else when the study has no run directory yet) and, where the archive (archive/<study name> beside
+# the spec) changed, commits that folder alone: "Archive: NAME N of TOTAL" (N the archived runs, TOTAL the
+# spec's runs). Nothing else in the working tree is staged or committed (paths are literal, not patterns).
+# The commit holds the archive's lock, the one `pimbrl study archive` and `pimbrl study run --keep-archive`
+# take, so it never commits a half-copied run; when another process holds it, or the commit fails, the
+# folder is unstaged again and left to the next round. `pimbrl study run SPEC --keep-archive` archives each
+# run as it finishes; this script adds the commits (docs/studies.md).
 set -uo pipefail
+export GIT_LITERAL_PATHSPECS=1
 every=10
 if [[ "${1:-}" == "--every" ]]; then
     every="${2:-}"
@@ -18,23 +21,30 @@ if [[ "${1:-}" == "--every" ]]; then
 fi
 (($# > 0)) || { echo "usage: $0 [--every MINUTES] SPEC..." >&2; exit 2; }
 pimbrl="${PIMBRL:-.venv/bin/pimbrl}"
-[[ -x "$pimbrl" ]] || { echo "$pimbrl not found: run from the repository root or set PIMBRL" >&2; exit 2; }
+python="$(dirname "$pimbrl")/python"
+[[ -x "$pimbrl" && -x "$python" ]] || { echo "$pimbrl not found: run from the repository root or set PIMBRL" >&2; exit 2; }
+names=()
 for spec in "$@"; do
-    [[ -f "$spec" ]] || { echo "no spec $spec" >&2; exit 2; }
+    name=$("$python" -c 'import sys; from pimbrl.experiments.spec import load_spec; print(load_spec(sys.argv[1]).name)' "$spec") \
+        || { echo "cannot read the spec $spec (the line above says why)" >&2; exit 2; }
+    names+=("$name")
 done
+commit() {  # archive folder, message: stage and commit the folder alone, or unstage it again
+    git add -- "$1" && git commit -q -m "$2" -- "$1" && return 0
+    git reset -q -- "$1"
+    return 1
+}
 while true; do
-    for spec in "$@"; do
-        name=$(basename "$spec" .yaml)
-        [[ -d "runs/$name" ]] || continue
+    for i in "${!names[@]}"; do
+        spec="${@:i+1:1}" name="${names[i]}"
         "$pimbrl" study archive "$spec" || continue
         archive="$(dirname "$spec")/archive/$name"
-        [[ -n "$(git status --porcelain -- "$archive")" ]] || continue
-        n=$(find "$archive" -name config.json | wc -l)
-        total=$("$pimbrl" study plan "$spec" 2>/dev/null | grep -c " seed [0-9]")
-        for _ in 1 2 3 4 5; do
-            git add -- "$archive" && git commit -q -m "Archive: $name $n of ${total:-?}" -- "$archive" && break
-            sleep 5
-        done
+        [[ -d "$archive" && -n "$(git status --porcelain -- "$archive")" ]] || continue
+        n=$(find "$archive" -name config.json -not -path '*.copying*' | wc -l)
+        total=$("$pimbrl" study plan "$spec" 2>/dev/null | grep -c " seed [0-9]") || total="?"
+        export -f commit
+        flock -n "$archive" bash -c 'commit "$0" "$1"' "$archive" "Archive: $name $n of $total" \
+            || echo "$archive: not committed this round (busy or git failed); the next round tries again" >&2
     done
     sleep $((every * 60))
 done

@@ -134,16 +134,18 @@ def readme_disagreements(results: str, readme: str) -> list[str]:
         if not found:
             missing.append(f"{hid.strip()} ({study}, {where.strip()}): {word}")
             continue
-        bullet = re.split(r"\n(?:- |\n)", findings[found.end() :], maxsplit=1)[0]
+        bullet = re.split(r"\n\s*(?:[-*+]|\d+[.)])\s|\n\s*\n", findings[found.end() :], maxsplit=1)[0]
         stated = re.search(r"P = (" + POI.pattern + ")", bullet)
         expected = POI.search(poi)
         said = " ".join(stated.group(1).split()) if stated else None
-        if expected and said != expected.group(0):
-            missing.append(f"{hid.strip()} ({study}, {where.strip()}): P = {expected.group(0)}, not {said or 'unstated'}")
+        if (expected.group(0) if expected else None) != said:
+            want = expected.group(0) if expected else "none (the results page gives none)"
+            missing.append(f"{hid.strip()} ({study}, {where.strip()}): P = {want}, not {said or 'unstated'}")
     return missing
 
 
 def test_the_readme_findings_state_every_confirmatory_verdict_of_the_results_page() -> None:
+    results = (ROOT / "docs" / "results.md").read_text()
     row = "| [c-b](#c-b-confirmatory) | H1a | claim | Burgers-v0 | real steps to -11 | 0.61 [0.40, 0.80] (95%) | inconclusive |"
     readme = "# x\n\n## Findings\n\n- **H1a** (c-b, Burgers-v0): inconclusive, P = 0.61 [0.40, 0.80]\n\n## Next\n"
     assert readme_disagreements(row, readme) == []
@@ -156,7 +158,13 @@ def test_the_readme_findings_state_every_confirmatory_verdict_of_the_results_pag
     assert readme_disagreements(row, nxt) == ["H1a (c-b, Burgers-v0): P = 0.61 [0.40, 0.80], not unstated"]
     broken = readme.replace("P = 0.61 [0.40, 0.80]", "P = 0.61\n  [0.40, 0.80]")  # a line break inside it
     assert readme_disagreements(row, broken) == []
-    results = (ROOT / "docs" / "results.md").read_text()
+    none = row.replace("0.61 [0.40, 0.80] (95%)", "\u2014")  # no P on the results page: none may be stated
+    assert readme_disagreements(none, readme) == [
+        "H1a (c-b, Burgers-v0): P = none (the results page gives none), not 0.61 [0.40, 0.80]"
+    ]
+    # every row of the page's verdict table is read (a row the pattern missed would go unchecked)
+    rows = [line for line in results.splitlines() if re.match(r"^\| \[[^\]]+\]\(#[^)]*-confirmatory\) \| H", line)]
+    assert len(VERDICT_ROW.findall(results)) == len(rows) > 0
     assert readme_disagreements(results, (ROOT / "README.md").read_text()) == [], "README Findings must state these verdicts"
 
 

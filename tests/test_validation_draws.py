@@ -92,7 +92,7 @@ def _agent_tensors(run: Path) -> list[torch.Tensor]:
 
 #: the systems the training test runs on: one of each path a system's draws come by (a built-in ODE, a
 #: built-in PDE, KS's pool, a system of a user's own); the draws of every system are checked below, and the
-#: switch reads them through the same loop whatever the system (Pendulum's case runs in the checkpoint test)
+#: switch reads them through the same loop whatever the system (the checkpoint test reuses Pendulum's flags)
 TRAINED = ["burgers", "cartpole", "ks", "duffing"]
 
 
