@@ -4,7 +4,7 @@ Every system has validation initial states disjoint from its test states (KS: a 
 its own seed stream; the others: draws from a seed stream no evaluation seed reaches). The switch to
 model-free fine-tuning (``finetune.at_return``) reads the mean return on those, so two runs that differ
 only in their test set (number of test episodes and evaluation seed) train identically, step for step, while
-the switch fires in both at the same step: on one system of each kind (``TRAINED``), the draws being checked
+the switch fires in both at the same step: on one system of each kind (``CASES``), the draws being checked
 on every system.
 """
 
@@ -30,19 +30,18 @@ EXAMPLES = {
 }
 KS_POOL = json.dumps({"pool_config": {"n_train": 24, "n_test": 8, "n_validation": 4, "batch": 16, "seed": 123}})
 
-#: per system: a model-based run whose switch fires part-way (threshold between the validation returns of
-#: its early and later evaluations on this code), and two test sets (episodes, seed)
+#: Pendulum's run of the checkpoint test below: a model-based run whose validation return crosses its threshold
+PENDULUM = ["--method", "mbrl", "--steps", "800", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100"]
+#: per system, one of each path a system's draws come by (a built-in ODE, a built-in PDE, KS's pool, a system
+#: of a user's own): a model-based run whose switch fires part-way (threshold between the validation returns of
+#: its early and later evaluations on this code), and two test sets (episodes, seed); the draws of every system
+#: are checked below, and the switch reads them through the same loop whatever the system
 CASES = {
     # the issue's reproduction: on 968d692 these two runs trained differently (the switch read the test return)
     "burgers": (
         ["--method", "pimbrl", "--steps", "720", "--warmup-steps", "60", "--update-after", "60", "--eval-every", "60"],
         "-10.6",
         (("1", "11"), ("50", "12")),
-    ),
-    "pendulum": (
-        ["--method", "mbrl", "--steps", "800", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100"],
-        "-1300",
-        (("2", "5"), ("6", "6")),
     ),
     "cartpole": (
         ["--method", "mbrl", "--steps", "600", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100"],
@@ -90,14 +89,8 @@ def _agent_tensors(run: Path) -> list[torch.Tensor]:
     return out
 
 
-#: the systems the training test runs on: one of each path a system's draws come by (a built-in ODE, a
-#: built-in PDE, KS's pool, a system of a user's own); the draws of every system are checked below, and the
-#: switch reads them through the same loop whatever the system (the checkpoint test reuses Pendulum's flags)
-TRAINED = ["burgers", "cartpole", "ks", "duffing"]
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("env", TRAINED)
+@pytest.mark.parametrize("env", list(CASES))
 def test_a_run_trains_the_same_whatever_its_test_set(env: str, tmp_path) -> None:
     flags, threshold, test_sets = CASES[env]
     runs = []
@@ -161,7 +154,7 @@ def test_the_validation_return_is_checkpointed(tmp_path) -> None:
     Pendulum, threshold -1430: on this code the validation return first reaches it at the evaluation of step
     600, which ends an episode (a checkpoint); the model phase at 650 reads it from the checkpoint.
     """
-    flags = ["pendulum", *CASES["pendulum"][0], "--finetune.at-return", "-1430", "--log-every", "50"]
+    flags = ["pendulum", *PENDULUM, "--finetune.at-return", "-1430", "--log-every", "50"]
     flags += ["--checkpoint-every", "200", "--eval-episodes", "2", *TINY]
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert main(["train", *flags, "--run-dir", str(whole)]) == 0
