@@ -7,6 +7,8 @@ Train it from the command line (nothing in pimbrl is edited):
     pimbrl train allen-cahn --import examples/allen_cahn.py --method pimbrl --steps 3000
 """
 
+from pathlib import Path
+
 import numpy as np
 
 from pimbrl.physics import Stencil
@@ -60,20 +62,6 @@ SYSTEM = declare(
     AllenCahn,
     "example/AllenCahn-v0",
     aliases=("allen-cahn",),
-    preset={  # the structure of a preset file, given as a mapping (duffing.py names a file instead)
-        "recipes": {
-            "default": {
-                "about": "a short budget for an example",
-                "settings": {
-                    "total_steps": 3_000,
-                    "warmup_steps": 200,
-                    "update_after": 200,
-                    "eval_every": 200,
-                    "eval_episodes": 20,
-                },
-                "model_based": {"utd": 5.0, "imagine.rollout_length": 3, "model.start_after": 200, "physics.start_after": 200},
-            }
-        }
-    },
+    preset=Path(__file__).with_suffix(".yaml"),  # its recipes, in allen_cahn.yaml beside this file
     out_of_sample=lambda task, rng, n: 3.0 * task.sample_initial_states(rng, n),
 )

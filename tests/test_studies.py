@@ -809,9 +809,14 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("system", ["burgers", "pendulum", "cartpole"])
-def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str) -> None:
-    """src/pimbrl/systems/SYSTEM.yaml's `best` is what tune-SYSTEM's report writes, section for section."""
+@pytest.mark.parametrize(
+    ("system", "preset"),
+    [(name, f"src/pimbrl/systems/{name}.yaml") for name in ("burgers", "pendulum", "cartpole")]
+    + [("allen-cahn", "examples/allen_cahn.yaml")],
+)
+def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str, preset: str) -> None:
+    """The system's preset's `best` (src/pimbrl/systems/SYSTEM.yaml, or the example's) is what tune-SYSTEM's report
+    writes, section for section."""
     import dataclasses
 
     from pimbrl.config import load_yaml
@@ -821,7 +826,7 @@ def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str) ->
     spec = dataclasses.replace(load_spec(repo / "benchmarks" / "pending" / f"tune-{system}.yaml"), reps=200)
     report = study_report(spec, load_record(spec))
     recipe = load_yaml(report.markdown.split("```yaml\n")[2].split("```")[0])
-    best = load_presets(repo / "src" / "pimbrl" / "systems" / f"{system}.yaml")[1]["best"]
+    best = load_presets(repo / preset)[1]["best"]
     assert f"tune-{system}" in best.chosen_by and "validation" in best.chosen_by
     assert recipe["methods"] == {k: dict(v) for k, v in best.methods.items()}
     assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}

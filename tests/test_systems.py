@@ -392,6 +392,19 @@ def test_a_system_without_a_preset_is_told_so_at_start(vanderpol: str, tmp_path,
     assert "has no preset" not in capsys.readouterr().err
 
 
+def test_a_preset_given_as_a_mapping_is_the_same_recipes_as_its_file() -> None:
+    """`declare(..., preset={...})` holds what a preset file holds (examples/allen_cahn.yaml, read as a mapping)."""
+    from pimbrl.config import load_yaml
+
+    path = ROOT / "examples" / "allen_cahn.yaml"
+    as_file = declare(VanDerPol, "test/PresetFile-v0", preset=path)
+    as_mapping = declare(VanDerPol, "test/PresetMapping-v0", preset=load_yaml(path.read_text()))
+    default, recipes = as_mapping.recipes()
+    assert (default, recipes) == as_file.recipes() and default == "default" and recipes["default"].settings["total_steps"] == 3000
+    with pytest.raises(SystemSpecError, match="preset"):
+        declare(VanDerPol, "test/PresetBroken-v0", preset={"recipes": {"default": {"extends": "missing"}}})
+
+
 @pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
 def test_a_study_run_in_a_fresh_process_loads_the_user_s_system(tmp_path) -> None:
     """A Ray worker is a fresh process: the trial carries its --import and loads it there."""
