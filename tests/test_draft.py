@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pimbrl.cli import main
@@ -69,7 +70,16 @@ def test_fewer_seeds_for_the_other_arms_keep_every_hypothesis_decidable(tmp_path
     assert draft.overrides["total_steps"] == 6000
     plan = " ".join(text.split())
     assert "RL arms scaled by 2 from the tuning runs' 3,000 steps to 6,000" in plan
-    assert "mbrl 5.1" in plan and "mpc 1.8" in plan and "dpc 28.4" in plan  # MBRL doubled; controllers not
+    assert "mbrl 5.1" in plan and "dpc 28.4" in plan  # MBRL doubled; controllers not
+    # MPC (horizon 20): its minutes a tuning run, not doubled, plus 100 holdout episodes at its inference cost
+    # per control step in those runs
+    from pimbrl.systems.registry import get_system
+
+    mpc = [r for r in load_record(load_spec(PENDING / "tune-burgers.yaml"))["runs"] if r["arm"] == "mpc-h20"]
+    holdout_steps = 100 * get_system("pimbrl/Burgers-v0").episode_steps
+    minutes = np.mean([r["wall_s"] for r in mpc]) / 60 + np.mean([r["inference_s_per_step"] for r in mpc]) * holdout_steps / 60
+    assert np.mean([r["wall_s"] for r in mpc]) / 60 < 2.0 < minutes and f"mpc {minutes:.1f}," in plan
+    assert "with 100 holdout episodes each at the arm's inference cost per control step" in plan
 
 
 @pytest.mark.slow
