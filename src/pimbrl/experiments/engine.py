@@ -30,7 +30,7 @@ from ..config import ConfigError
 from ..fileio import atomic_write_bytes, check_below
 from ..training.config import TrainConfig, applicable_overrides, config_to_dict, resolve_config, run_names, typed_overrides
 from ..training.rundir import RunDirectory, provenance
-from .runner import RunSpec, check_reuse, lock_comparison, run_all
+from .runner import RunSpec, check_reuse, lock_comparison, run_all, thread_variables
 from .spec import StudySpec, safe_component
 
 __all__ = [
@@ -355,7 +355,12 @@ def _run_on_ray(
                 watchdog = watch_descendants()  # Ray's helpers end with this process, also a killed one
                 ray.init(num_cpus=max(1, jobs), include_dashboard=False, log_to_driver=False)
         remote = ray.remote(num_cpus=1, max_retries=0)(execute_run)
-        refs = {remote.remote(str(r.path), r.config, tuple(imports)): r for r in runs}
+        refs = {
+            remote.options(runtime_env={"env_vars": thread_variables(r.config.threads)}).remote(
+                str(r.path), r.config, tuple(imports)
+            ): r
+            for r in runs
+        }
         failed = []
         pending = list(refs)
         while pending:

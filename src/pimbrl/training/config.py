@@ -170,7 +170,11 @@ class TrainConfig:
         5_000, "real steps between checkpoints (taken at the next episode end)", [positive(), at_most(MAX_STEPS)]
     )
     log_every: int = param(1_000, "real steps between rows of metrics.csv", [positive(), at_most(MAX_STEPS)])
-    threads: int = param(1, "torch threads for this run", in_range(1, 256))
+    threads: int = param(
+        1,
+        "torch threads for this run (a study's run also gets OpenMP, OpenBLAS and MKL pools of this size)",
+        in_range(1, 256),
+    )
     device: str = param("cpu", "where the networks run: cpu, cuda or auto (cuda where torch sees a GPU)", one_of(*DEVICES))
     tensorboard: bool = param(False, "also write TensorBoard events (needs the tensorboard package)")
     env_kwargs: dict = dataclasses.field(
