@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import ConfigError, add_arguments, overrides_from_args
+from .training.stopping import RunStopped
 
 __all__ = ["build_parser", "main"]
 
@@ -1151,6 +1152,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             raise
         return 2
+    except RunStopped as stopped:  # SIGTERM or SIGINT while training: checkpointed at the next episode end
+        print(f"pimbrl {args.command}: {stopped}{_checkpoint_note(args)}", file=sys.stderr)
+        return stopped.exit_status
     except KeyboardInterrupt:
         print(f"pimbrl {args.command}: interrupted{_checkpoint_note(args)}", file=sys.stderr)
         return 130

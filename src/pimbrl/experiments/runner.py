@@ -13,8 +13,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -49,6 +51,8 @@ COMPARE_LOCK = "compare.lock"
 #: seconds between status refreshes: on a terminal, and as plain lines otherwise
 STATUS_EVERY_TTY = 2.0
 STATUS_EVERY_PLAIN = 30.0
+#: a child's exit statuses when a signal stopped it (SIGINT, SIGTERM: 128 + the signal; checkpointed where it could)
+STOPPED_STATUSES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
 #: the variables that size the thread pools of the numerical libraries a run's process may load: OpenMP (and
 #: torch's pool, before ``torch.set_num_threads``), OpenBLAS (numpy's and scipy's linear algebra) and MKL
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -344,6 +348,7 @@ def run_all(
     failed: list[RunSpec] = []
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
     lines = _StatusLines(status and bool(pending))
+    previous = _forward_sigterm(running)
     try:
         while pending or running:
             while pending and len(running) < max(1, jobs):
@@ -362,7 +367,13 @@ def run_all(
                     continue
                 running.remove(item)
                 out.close()
-                if proc.returncode != 0:
+                if proc.returncode in STOPPED_STATUSES:  # a signal stopped it (checkpointed where it could)
+                    failed.append(spec)
+                    log(
+                        f"stopped {spec.label} seed {spec.seed} by a signal (exit code {proc.returncode}): the same "
+                        "command again resumes it from its last checkpoint"
+                    )
+                elif proc.returncode != 0:
                     failed.append(spec)
                     child_log = Path(spec.path) / CHILD_LOG
                     log(
@@ -375,8 +386,31 @@ def run_all(
                         on_done(spec)
             lines.show([spec for spec, _, _ in running])
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         lines.close()
-        for _, proc, out in running:  # interrupted: the children get the same signal; wait for them
+        for _, proc, out in running:  # interrupted: the children got the signal (they checkpoint); wait for them
             proc.wait()
             out.close()
     return failed
+
+
+def _forward_sigterm(running: list[tuple[RunSpec, subprocess.Popen, Any]]) -> Any:
+    """While the driver runs, a SIGTERM sent to it alone goes on to its running children, then interrupts it.
+
+    Ctrl-C reaches the whole process group; ``kill PID`` or a scheduler's SIGTERM reaches the driver only, and
+    the children would train on unrecorded. Each child stops at its next episode end with a checkpoint
+    (:mod:`pimbrl.training.stopping`) and the driver waits for them. Returns the handler it replaced (``None``
+    off the main thread, where none can be set, or where SIGTERM is ignored).
+    """
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+        return None
+
+    def forward(signum: int, frame: Any) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the driver at once
+        for _, proc, _ in running:
+            if proc.poll() is None:
+                proc.send_signal(signum)
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, forward)

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     )
     from .rundir import RunDirectory, steps_to_threshold
     from .runs import load_run, resume_training, run_training
+    from .stopping import RunStopped
     from .streams import STREAM_KEYS, RandomStreams
 
 #: public name -> the submodule that defines it
@@ -75,6 +76,7 @@ _WHERE = {
     "load_run": "runs",
     "resume_training": "runs",
     "run_training": "runs",
+    "RunStopped": "stopping",
     "STREAM_KEYS": "streams",
     "RandomStreams": "streams",
 }
@@ -106,6 +108,7 @@ __all__ = [
     "Run",
     "RunDirectory",
     "RunLogger",
+    "RunStopped",
     "RunSummary",
     "TrainConfig",
     "UpdateSchedule",

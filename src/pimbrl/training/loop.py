@@ -20,6 +20,7 @@ so a resumed run continues exactly where the checkpoint was taken. :func:`create
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Callable
@@ -48,6 +49,7 @@ from .holdout import holdout_summary, read_holdout, write_holdout
 from .logger import RunLogger
 from .rundir import CheckpointError, RunDirectory, package_versions, provenance, steps_to_threshold
 from .selection import PolicySelector
+from .stopping import RunStopped, StopRequest
 from .streams import RandomStreams
 from .summary import RunSummary
 
@@ -271,7 +273,8 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
     the model phase (fit, check, imagine; model-based only), then ``update_every * utd`` agent updates on
     batches mixing real and imagined transitions. Every ``eval_every`` steps: evaluate the deterministic
     policy on the held-out test states. At an episode end: log it and, when due, checkpoint. At the end:
-    a last evaluation, the final checkpoint and the summary in ``config.json``.
+    a last evaluation, the final checkpoint and the summary in ``config.json``. A SIGTERM or SIGINT while it
+    trains stops it at the next episode end, after a checkpoint (:class:`~.stopping.RunStopped`).
     """
     if isinstance(run, ControlRun):  # feedback, mpc, dpc: no agent, no replay (pimbrl.control)
         return run.train()
@@ -283,7 +286,8 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
         finally:
             run.run_dir.close()  # releases the run's lock
     log.open(run.t, cfg.total_steps, f"{cfg.method.name}/{cfg.agent.name} {cfg.env} seed {cfg.seed}")
-    try:
+    # the log is closed however the run ends; a SIGTERM or SIGINT stops it at its next episode end, checkpointed
+    with contextlib.closing(log), StopRequest() as stop:
         run.collector.reset(first=run.t == 0)
         while run.t < cfg.total_steps:
             # 1. act in the real environment (uniformly random during warm-up) and store the transition
@@ -322,10 +326,13 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
             if step.done:
                 end = run.collector.end_episode()
                 log.episode(run.t, end.episode, end.return_, end.length)
-                if run.t - run.last_checkpoint_t >= cfg.checkpoint_every and run.t < cfg.total_steps:
+                due = run.t - run.last_checkpoint_t >= cfg.checkpoint_every
+                if (due or stop.requested) and run.t < cfg.total_steps:
                     with log.timed("checkpoint"):
                         run.save_checkpoint()
                     event("checkpoint", run)
+                    if stop.signum is not None:  # asked to stop: the checkpoint is written, resume continues it
+                        raise RunStopped(stop.signum, run.t)
                 if run.t < cfg.total_steps:  # at the end the reset is left to a continuation (resume --total-steps)
                     run.collector.reset(first=False)
         if run.t % cfg.eval_every != 0 or log.last_eval is None:
@@ -334,8 +341,6 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
             _log_metrics(run)
         run.save_checkpoint()
         return _finish(run)
-    finally:
-        log.close()
 
 
 def _evaluate(run: Run) -> None:

@@ -1,0 +1,75 @@
+"""A stop asked of a training run (SIGTERM, or SIGINT), kept until the run can checkpoint.
+
+A batch scheduler (SLURM, a cloud's preemption, ``kill``) ends a job with SIGTERM and a grace period before
+SIGKILL. Without a handler, the process dies at once and the run goes back to its last checkpoint, which for
+a short run (3,000 steps, a checkpoint due every 5,000) is its start. While :func:`train` runs, the first
+SIGTERM or SIGINT is only noted; at the next episode end the loop writes a checkpoint and raises
+:class:`RunStopped`, and ``pimbrl resume`` continues from there exactly. A second signal stops at once (the
+usual Ctrl-C twice). A signal the process ignores (SIGINT in a job a shell started in the background) stays
+ignored.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from types import FrameType, TracebackType
+from typing import Any
+
+__all__ = ["STOP_SIGNALS", "RunStopped", "StopRequest"]
+
+#: the signals that ask a run to stop at its next checkpoint
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+class RunStopped(Exception):  # noqa: N818 - not an error: the stop that was asked for
+    """A run stopped by a signal after writing its checkpoint at ``step``; ``pimbrl resume`` continues it."""
+
+    def __init__(self, signum: int, step: int) -> None:
+        self.signum = signum
+        self.step = step
+        super().__init__(f"stopped by {signal.Signals(signum).name} at step {step:,d}, its checkpoint written")
+
+    @property
+    def exit_status(self) -> int:
+        """128 + the signal's number, as a shell reports a command a signal ended (143 for SIGTERM)."""
+        return 128 + self.signum
+
+
+class StopRequest:
+    """While entered, SIGTERM and SIGINT set :attr:`signum` instead of ending the process; a second ends it.
+
+    Off the main thread (a Ray task's, say) signal handlers cannot be set; it then does nothing and
+    :attr:`signum` stays ``None``.
+    """
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    @property
+    def requested(self) -> bool:
+        """Whether a stop was asked."""
+        return self.signum is not None
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.signum is not None:  # asked twice: stop now, as without the handler
+            self.__exit__(None, None, None)
+            raise KeyboardInterrupt
+        self.signum = signum
+
+    def __enter__(self) -> StopRequest:
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for sig in STOP_SIGNALS:
+            previous = signal.getsignal(sig)
+            if previous is signal.SIG_IGN:  # ignored by whoever started us: stays so
+                continue
+            self._previous[sig] = previous
+            signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous.clear()

@@ -1,0 +1,134 @@
+"""A SIGTERM or SIGINT stops a training run at its next episode end with a checkpoint; resume continues it exactly."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from pimbrl.cli import main
+from pimbrl.experiments import runner
+from pimbrl.experiments.runner import RunSpec, run_all
+from pimbrl.training import RunDirectory, RunStopped, create_run, open_run, resolve_config, train
+from pimbrl.training import loop as loop_module
+from pimbrl.training.stopping import StopRequest
+
+from .settings import ENV_IDS, SMOKE_SETTINGS, TINY_SETTINGS, flags
+
+pytestmark = pytest.mark.skipif(
+    threading.current_thread() is not threading.main_thread(), reason="signal handlers are set on the main thread only"
+)
+
+#: 180 real steps of Burgers: three episodes of 60
+SETTINGS = {"method": "mfrl", **SMOKE_SETTINGS["burgers"], **TINY_SETTINGS, "total_steps": 180}
+
+
+def _tables(path: Path) -> dict[str, list[dict]]:
+    d = RunDirectory(path)
+    rows = {"evaluations": d.evaluations.read(), "episodes": d.episodes.read(), "metrics": d.metrics([]).read()}
+    timing = ("wall", "time/", "per_s")
+    return {name: [{k: v for k, v in r.items() if not any(t in k for t in timing)} for r in rs] for name, rs in rows.items()}
+
+
+def test_the_first_signal_is_noted_the_second_stops_and_the_handlers_come_back() -> None:
+    before = signal.getsignal(signal.SIGTERM)
+    with StopRequest() as stop:
+        assert not stop.requested
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.signum == signal.SIGTERM  # noted, the process goes on
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)  # a second signal: at once
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_signal_ignored_by_whoever_started_the_process_stays_ignored() -> None:
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as for a job a shell started in the background
+    try:
+        with StopRequest() as stop:
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)
+            assert not stop.requested
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.slow  # a few seconds: three short runs
+def test_a_sigterm_stops_at_the_episode_end_with_a_checkpoint_and_resume_continues_bit_for_bit(tmp_path) -> None:
+    cfg = resolve_config(ENV_IDS["burgers"], SETTINGS)  # no checkpoint is due before the end (every 5,000 steps)
+    whole = create_run(cfg, tmp_path / "whole", progress=False)
+    train(whole)
+
+    def kill_at_70(name: str, run) -> None:
+        if name == "act" and run.t == 70:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    cut = create_run(cfg, tmp_path / "cut", progress=False)
+    with pytest.raises(RunStopped, match=r"stopped by SIGTERM at step 120, its checkpoint written") as stopped:
+        train(cut, on_event=kill_at_70)
+    assert stopped.value.step == 120 and stopped.value.exit_status == 143
+    assert RunDirectory(tmp_path / "cut").status == "running"  # not finished: resumable
+    resumed = open_run(tmp_path / "cut", progress=False)
+    assert resumed.t == 120  # the checkpoint of the stop, not the run's start
+    train(resumed)
+    assert _tables(tmp_path / "cut") == _tables(tmp_path / "whole")
+
+
+def test_the_train_command_says_where_it_stopped_and_exits_as_a_shell_reports_the_signal(
+    tmp_path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    class Asked(StopRequest):  # a SIGTERM that came before the first step
+        def __enter__(self) -> StopRequest:
+            super().__enter__()
+            self.signum = signal.SIGTERM
+            return self
+
+    monkeypatch.setattr(loop_module, "StopRequest", Asked)
+    settings = {k: v for k, v in SETTINGS.items() if k != "method"}
+    assert main(["train", "burgers", "--run-dir", str(tmp_path / "run"), "--quiet", *flags(settings)]) == 143
+    err = capsys.readouterr().err
+    assert "pimbrl train: stopped by SIGTERM at step 60, its checkpoint written" in err
+    assert "the last checkpoint (step 60) is intact: `pimbrl resume" in err
+
+
+def test_the_study_driver_passes_a_sigterm_to_its_children_and_waits_for_them(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    marker = tmp_path / "child-got-sigterm"
+    # the child stands in for `pimbrl train`: on SIGTERM it notes it and exits as a stopped run does (143)
+    child = (
+        "import signal, sys, time, pathlib\n"
+        f"def stop(s, f): pathlib.Path({str(marker)!r}).write_text('yes'); sys.exit(143)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    real_popen = subprocess.Popen
+
+    def popen(cmd, **kwargs):
+        return real_popen([sys.executable, "-c", child], **kwargs)
+
+    monkeypatch.setattr(runner.subprocess, "Popen", popen)
+    log_path = tmp_path / "run" / runner.CHILD_LOG
+
+    def kill_driver_when_the_child_is_ready() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (log_path.exists() and "ready" in log_path.read_text()):
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGTERM)  # to the driver alone, as `kill PID` or a scheduler sends it
+
+    config = resolve_config(ENV_IDS["burgers"], SETTINGS)
+    before = signal.getsignal(signal.SIGTERM)
+    killer = threading.Thread(target=kill_driver_when_the_child_is_ready)
+    killer.start()
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        run_all([RunSpec("mfrl", 0, tmp_path / "run", config)], jobs=1, log=lambda line: None, status=False)
+    killer.join()
+    assert marker.read_text() == "yes"  # the child got the SIGTERM before the driver returned
+    assert time.monotonic() - started < 30  # it did not sleep its 60 s out
+    assert signal.getsignal(signal.SIGTERM) is before  # the driver's handler is gone with it
