@@ -1,4 +1,4 @@
-"""A study's child processes get every library's thread pool sized to the run's ``threads``, not torch's alone."""
+"""A run's ``threads`` sizes every library's thread pool, not torch's alone: in its process and in a study's children."""
 
 from __future__ import annotations
 
@@ -6,9 +6,12 @@ import subprocess
 import sys
 
 import pytest
+import torch
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from pimbrl.experiments import runner
 from pimbrl.experiments.runner import THREAD_VARIABLES, RunSpec, pinned_environment, run_all, thread_variables
+from pimbrl.training import create_run
 from pimbrl.training.config import resolve_config
 
 # the child that stands in for `pimbrl train`: it exits 0 only where its environment pins every pool to 2 threads
@@ -37,3 +40,15 @@ def test_a_study_child_starts_with_its_runs_threads(tmp_path, monkeypatch: pytes
     failed = run_all([RunSpec("mfrl", 0, tmp_path / "run", config)], jobs=1, log=lambda line: None, status=False)
     assert len(started) == 1 and started[0]["OPENBLAS_NUM_THREADS"] == "2"
     assert failed == []  # the child saw every variable at 2 (it exits 3 otherwise)
+
+
+def test_a_run_sizes_the_blas_pools_its_process_has_loaded(tmp_path) -> None:
+    blas = [i for i in threadpool_info() if i["user_api"] == "blas"]
+    assert blas, "numpy loads a BLAS library (OpenBLAS in its wheels)"
+    config = resolve_config("pimbrl/Pendulum-v0", {"method": "mfrl", "threads": 1})
+    with threadpool_limits(limits=2):  # as numpy's OpenBLAS starts on a 2-core machine (restored afterwards)
+        assert {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"} == {2}
+        run = create_run(config, tmp_path / "run", progress=False)
+        run.run_dir.close()
+        assert {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"} == {1}
+        assert torch.get_num_threads() == 1

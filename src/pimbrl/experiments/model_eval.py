@@ -41,6 +41,7 @@ from ..spaces import ActionAdapter
 from ..systems import get_system
 from ..training.methods import PhysicsLoss
 from ..training.rundir import provenance
+from ..training.threads import pin_threads
 from .model_eval_config import PHYSICS_FLAGS, ModelEvalConfig, defaults
 
 __all__ = [
@@ -187,7 +188,7 @@ def run_model_eval(
     validate(cfg)
     check_physics_settings(cfg)
     oos = out_of_sample(env_id)
-    torch.set_num_threads(cfg.threads)
+    pin_threads(cfg.threads)
     out_dir = Path(run_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     env = gym.make(env_id)

@@ -48,6 +48,7 @@ from ..models.coefficients import LearnedCoefficients
 from ..models.residual import as_scheme
 from ..models.state_sources import broad_actions, choose_sources
 from ..physics import Physics
+from ..training.threads import pin_threads
 from .model_eval import (
     ModelEvalConfig,
     _random_env_actions,
@@ -105,7 +106,7 @@ def run_model_study(env_id: str, run_dir: str | Path, cfg: ModelEvalConfig, log:
 
     validate(cfg)
     check_physics_settings(cfg)
-    torch.set_num_threads(cfg.threads)
+    pin_threads(cfg.threads)
     oos = out_of_sample(env_id)
     env_kwargs: dict[str, Any] = dict(cfg.env_coefficients)
     env = gym.make(env_id, **env_kwargs)

@@ -172,7 +172,7 @@ class TrainConfig:
     log_every: int = param(1_000, "real steps between rows of metrics.csv", [positive(), at_most(MAX_STEPS)])
     threads: int = param(
         1,
-        "torch threads for this run (a study's run also gets OpenMP, OpenBLAS and MKL pools of this size)",
+        "threads for this run: torch's pool and the BLAS and OpenMP pools numpy and scipy load",
         in_range(1, 256),
     )
     device: str = param("cpu", "where the networks run: cpu, cuda or auto (cuda where torch sees a GPU)", one_of(*DEVICES))

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..config import ConfigError
 from ..control.base import Controller, ControlResult, play, task_of
@@ -42,6 +41,7 @@ from .holdout import holdout_summary, read_holdout, write_holdout
 from .methods import DPC, MPC, Feedback
 from .rundir import RunDirectory, steps_to_threshold
 from .summary import RunSummary
+from .threads import pin_threads
 
 __all__ = ["CONTROL_FILE", "ControlRun", "read_stages"]
 
@@ -84,11 +84,11 @@ class ControlRun:
     @classmethod
     def build(cls, cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) -> ControlRun:
         """The run of ``cfg`` (nothing written); a configuration that cannot run is a one-line error here."""
-        torch.set_num_threads(cfg.threads)
         try:
             task = task_of(cfg.env, cfg.env_kwargs)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        pin_threads(cfg.threads)
         check_pool_sizes(task, cfg.eval_protocol, cfg.eval_episodes, cfg.holdout_episodes)
         return cls(cfg, run_dir, task, progress)
 

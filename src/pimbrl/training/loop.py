@@ -52,6 +52,7 @@ from .selection import PolicySelector
 from .stopping import RunStopped, StopRequest
 from .streams import RandomStreams
 from .summary import RunSummary
+from .threads import pin_threads
 
 __all__ = [
     "STATE_KEYS",
@@ -399,7 +400,6 @@ def resolve_device(device: str) -> str:
 
 def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) -> Run:
     """The components of a fresh run of ``cfg`` (nothing is written to ``run_dir``)."""
-    torch.set_num_threads(cfg.threads)
     streams = RandomStreams(cfg.seed)
     model_based = cfg.model_based
     try:
@@ -410,6 +410,7 @@ def build_run(cfg: TrainConfig, run_dir: RunDirectory, progress: bool = True) ->
             f"environment {cfg.env} cannot be made here ({type(exc).__name__}: {first}); install what it needs"
         ) from None
     check_pool_sizes(collector.task, cfg.eval_protocol, cfg.eval_episodes, cfg.holdout_episodes)
+    pin_threads(cfg.threads)  # once the environment has loaded what it needs (scipy's OpenBLAS, say)
     agent = make_agent(
         cfg.agent,
         collector.obs_dim,
