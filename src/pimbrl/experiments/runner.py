@@ -62,9 +62,9 @@ def pinned_environment(threads: int, base: Mapping[str, str] | None = None) -> d
     """``base`` (default: this process's environment) with every thread pool of a child sized to ``threads``.
 
     ``torch.set_num_threads`` pins torch only; numpy's OpenBLAS starts a thread per core when it loads, and a
-    simulator built on numpy (controlgym's) then runs on two cores while its neighbour waits: on the 2-core
-    machine with two runs side by side, 200 steps of controlgym's Burgers took 47 s with OpenBLAS's default
-    pool and 14 s with one thread. The variables are read when the libraries load, so they are set for the
+    simulator built on numpy (controlgym's) then runs on two cores while its neighbour waits: on a 2-core
+    machine beside other runs, 200 steps of controlgym's Burgers took 3.2 times as long with OpenBLAS's default
+    pool as with one thread (``benchmarks/bench_blas_threads.py``). The variables are read when the libraries load, so they are set for the
     child, before it starts; they override the parent's (a run's ``threads`` is its whole budget).
     """
     return {**(os.environ if base is None else base), **thread_variables(threads)}
