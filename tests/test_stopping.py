@@ -47,6 +47,17 @@ def test_the_first_signal_is_noted_the_second_stops_and_the_handlers_come_back()
     assert signal.getsignal(signal.SIGTERM) is before
 
 
+def test_a_repeated_sigterm_is_the_same_stop_and_an_inactive_request_sets_nothing(capsys) -> None:
+    with StopRequest() as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGTERM)  # a job's SIGTERM and the driver's copy of it: still one stop
+        assert stop.signum == signal.SIGTERM
+    assert "pimbrl: SIGTERM: stopping at the end of this episode, with a checkpoint" in capsys.readouterr().err
+    before = signal.getsignal(signal.SIGTERM)
+    with StopRequest(active=False) as inactive:  # Python callers of train() keep the usual behaviour
+        assert signal.getsignal(signal.SIGTERM) is before and not inactive.requested
+
+
 def test_a_signal_ignored_by_whoever_started_the_process_stays_ignored() -> None:
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as for a job a shell started in the background
     try:
@@ -71,12 +82,12 @@ def test_a_sigterm_stops_at_the_episode_end_with_a_checkpoint_and_resume_continu
 
     cut = create_run(cfg, tmp_path / "cut", progress=False)
     with pytest.raises(RunStopped, match=r"stopped by SIGTERM at step 120, its checkpoint written") as stopped:
-        train(cut, on_event=kill_at_70)
+        train(cut, on_event=kill_at_70, stop_on_signal=True)
     assert stopped.value.step == 120 and stopped.value.exit_status == 143
     assert RunDirectory(tmp_path / "cut").status == "running"  # not finished: resumable
     resumed = open_run(tmp_path / "cut", progress=False)
     assert resumed.t == 120  # the checkpoint of the stop, not the run's start
-    train(resumed)
+    train(resumed, stop_on_signal=True)
     assert _tables(tmp_path / "cut") == _tables(tmp_path / "whole")
 
 
@@ -97,38 +108,47 @@ def test_the_train_command_says_where_it_stopped_and_exits_as_a_shell_reports_th
     assert "the last checkpoint (step 60) is intact: `pimbrl resume" in err
 
 
-def test_the_study_driver_passes_a_sigterm_to_its_children_and_waits_for_them(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    marker = tmp_path / "child-got-sigterm"
-    # the child stands in for `pimbrl train`: on SIGTERM it notes it and exits as a stopped run does (143)
+def test_the_study_driver_passes_a_sigterm_on_and_a_child_that_gets_two_still_checkpoints(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the child stands in for `pimbrl train`: the same StopRequest; it exits 143 as a run stopped at its checkpoint
+    # does, or dies of the KeyboardInterrupt a second signal would raise
     child = (
-        "import signal, sys, time, pathlib\n"
-        f"def stop(s, f): pathlib.Path({str(marker)!r}).write_text('yes'); sys.exit(143)\n"
-        "signal.signal(signal.SIGTERM, stop)\n"
-        "print('ready', flush=True)\n"
-        "time.sleep(60)\n"
+        "import sys, time\n"
+        "from pimbrl.training.stopping import StopRequest\n"
+        "with StopRequest() as stop:\n"
+        "    print('ready', flush=True)\n"
+        "    deadline = time.monotonic() + 30\n"
+        "    while not stop.requested and time.monotonic() < deadline:\n"
+        "        time.sleep(0.01)\n"
+        "    time.sleep(1.5)  # the driver's copy of the SIGTERM arrives meanwhile\n"
+        "sys.exit(143 if stop.requested else 1)\n"
     )
     real_popen = subprocess.Popen
+    children: list[subprocess.Popen] = []
 
     def popen(cmd, **kwargs):
-        return real_popen([sys.executable, "-c", child], **kwargs)
+        children.append(real_popen([sys.executable, "-c", child], **kwargs))
+        return children[-1]
 
     monkeypatch.setattr(runner.subprocess, "Popen", popen)
     log_path = tmp_path / "run" / runner.CHILD_LOG
 
-    def kill_driver_when_the_child_is_ready() -> None:
+    def sigterm_to_the_job_when_the_child_is_ready() -> None:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and not (log_path.exists() and "ready" in log_path.read_text()):
             time.sleep(0.05)
-        os.kill(os.getpid(), signal.SIGTERM)  # to the driver alone, as `kill PID` or a scheduler sends it
+        os.kill(children[0].pid, signal.SIGTERM)  # as a scheduler signals every process of a job
+        os.kill(os.getpid(), signal.SIGTERM)  # and the driver, which passes it on
 
     config = resolve_config(ENV_IDS["burgers"], SETTINGS)
     before = signal.getsignal(signal.SIGTERM)
-    killer = threading.Thread(target=kill_driver_when_the_child_is_ready)
+    lines: list[str] = []
+    killer = threading.Thread(target=sigterm_to_the_job_when_the_child_is_ready)
     killer.start()
-    started = time.monotonic()
     with pytest.raises(KeyboardInterrupt):
-        run_all([RunSpec("mfrl", 0, tmp_path / "run", config)], jobs=1, log=lambda line: None, status=False)
+        run_all([RunSpec("mfrl", 0, tmp_path / "run", config)], jobs=1, log=lines.append, status=False)
     killer.join()
-    assert marker.read_text() == "yes"  # the child got the SIGTERM before the driver returned
-    assert time.monotonic() - started < 30  # it did not sleep its 60 s out
+    assert children[0].returncode == 143  # two SIGTERMs, one stop: it reached its "checkpoint"
+    assert any(line.startswith("stopped mfrl seed 0 (exit code 143): the same command again resumes it") for line in lines)
     assert signal.getsignal(signal.SIGTERM) is before  # the driver's handler is gone with it

@@ -164,7 +164,7 @@ def _train(args: argparse.Namespace, run: Any) -> Any:
         if name == "checkpoint":  # called once the checkpoint is written
             args.checkpoint_step = r.t
 
-    return train(run, on_event=on_event)
+    return train(run, on_event=on_event, stop_on_signal=True)  # SIGTERM, SIGINT: checkpointed at the episode end
 
 
 def _cmd_train(args: argparse.Namespace) -> int:

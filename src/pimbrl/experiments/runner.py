@@ -64,8 +64,9 @@ def pinned_environment(threads: int, base: Mapping[str, str] | None = None) -> d
     ``torch.set_num_threads`` pins torch only; numpy's OpenBLAS starts a thread per core when it loads, and a
     simulator built on numpy (controlgym's) then runs on two cores while its neighbour waits: on a 2-core
     machine beside other runs, 200 steps of controlgym's Burgers took 3.2 times as long with OpenBLAS's default
-    pool as with one thread (``benchmarks/bench_blas_threads.py``). The variables are read when the libraries load, so they are set for the
-    child, before it starts; they override the parent's (a run's ``threads`` is its whole budget).
+    pool as with one thread (``benchmarks/bench_blas_threads.py``). The variables are read when the libraries
+    load, so they are set for the child, before it starts; they override the parent's (a run's ``threads`` is
+    its whole budget).
     """
     return {**(os.environ if base is None else base), **thread_variables(threads)}
 
@@ -348,9 +349,10 @@ def run_all(
     failed: list[RunSpec] = []
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
     lines = _StatusLines(status and bool(pending))
-    previous = _forward_sigterm(running)
+    sigterm = _SigtermFlag()
     try:
         while pending or running:
+            sigterm.forward(running)  # a safe point: every child started so far gets it, then the driver stops
             while pending and len(running) < max(1, jobs):
                 spec, cmd = pending.pop(0)
                 log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
@@ -361,13 +363,14 @@ def run_all(
                 env = pinned_environment(spec.config.threads)
                 running.append((spec, subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env), out))
             time.sleep(0.5)
+            sigterm.forward(running)
             for item in list(running):
                 spec, proc, out = item
                 if proc.poll() is None:
                     continue
                 running.remove(item)
                 out.close()
-                if proc.returncode in STOPPED_STATUSES:  # a signal stopped it (checkpointed where it could)
+                if _stopped(proc.returncode):  # a signal stopped it (checkpointed where it could)
                     failed.append(spec)
                     log(
                         f"stopped {spec.label} seed {spec.seed} by a signal (exit code {proc.returncode}): the same "
@@ -386,31 +389,54 @@ def run_all(
                         on_done(spec)
             lines.show([spec for spec, _, _ in running])
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        sigterm.restore()
         lines.close()
-        for _, proc, out in running:  # interrupted: the children got the signal (they checkpoint); wait for them
+        for spec, proc, out in running:  # interrupted: the children got the signal (they checkpoint); wait for them
             proc.wait()
             out.close()
+            if _stopped(proc.returncode):
+                log(f"stopped {spec.label} seed {spec.seed} (exit code {proc.returncode}): the same command again resumes it")
     return failed
 
 
-def _forward_sigterm(running: list[tuple[RunSpec, subprocess.Popen, Any]]) -> Any:
-    """While the driver runs, a SIGTERM sent to it alone goes on to its running children, then interrupts it.
+def _stopped(returncode: int) -> bool:
+    """Whether a child's exit status says a SIGINT or SIGTERM stopped it (handled: 130, 143; or not: -2, -15)."""
+    return returncode in STOPPED_STATUSES or -returncode in (signal.SIGINT, signal.SIGTERM)
 
-    Ctrl-C reaches the whole process group; ``kill PID`` or a scheduler's SIGTERM reaches the driver only, and
-    the children would train on unrecorded. Each child stops at its next episode end with a checkpoint
-    (:mod:`pimbrl.training.stopping`) and the driver waits for them. Returns the handler it replaced (``None``
-    off the main thread, where none can be set, or where SIGTERM is ignored).
+
+class _SigtermFlag:
+    """While the driver runs, a SIGTERM sent to it alone is noted, then passed on to its children at a safe point.
+
+    Ctrl-C reaches the whole process group; ``kill PID`` or a scheduler's SIGTERM may reach the driver only, and
+    the children would train on unrecorded. The handler only notes the signal; :meth:`forward`, called where no
+    child is being started, sends it to every running child (each stops at its next episode end with a
+    checkpoint, :mod:`pimbrl.training.stopping`; one that got it already ignores the copy) and interrupts the
+    driver, which then waits for them. Off the main thread, or where SIGTERM is ignored or handled outside
+    Python, nothing is installed.
     """
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
-        return None
 
-    def forward(signum: int, frame: Any) -> None:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the driver at once
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.previous: Any = None
+        main = threading.current_thread() is threading.main_thread()
+        if main and signal.getsignal(signal.SIGTERM) not in (signal.SIG_IGN, None):
+            self.previous = signal.signal(signal.SIGTERM, self._note)
+
+    def _note(self, signum: int, frame: Any) -> None:
+        self.signum = signum
+
+    def forward(self, running: list[tuple[RunSpec, subprocess.Popen, Any]]) -> None:
+        """Where a SIGTERM was noted: send it to every running child and raise KeyboardInterrupt."""
+        if self.signum is None:
+            return
         for _, proc, _ in running:
             if proc.poll() is None:
-                proc.send_signal(signum)
+                proc.send_signal(self.signum)
+        self.restore()  # a second SIGTERM ends the driver at once
         raise KeyboardInterrupt
 
-    return signal.signal(signal.SIGTERM, forward)
+    def restore(self) -> None:
+        """The handler there was before (once)."""
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
+            self.previous = None

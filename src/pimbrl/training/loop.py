@@ -267,15 +267,16 @@ def _log_metrics(run: Run) -> None:
         run.run_dir.write_json("coefficients.json", run.model.coefficients_report())
 
 
-def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummary:
+def train(run: Run | ControlRun, on_event: EventHook | None = None, stop_on_signal: bool = False) -> RunSummary:
     """Train ``run`` to ``total_steps`` real steps (the paper's Algorithm 1; MFRL when ``run.model`` is None).
 
     Every real step: act and store the transition. Every ``update_every`` steps after ``update_after``:
     the model phase (fit, check, imagine; model-based only), then ``update_every * utd`` agent updates on
     batches mixing real and imagined transitions. Every ``eval_every`` steps: evaluate the deterministic
     policy on the held-out test states. At an episode end: log it and, when due, checkpoint. At the end:
-    a last evaluation, the final checkpoint and the summary in ``config.json``. A SIGTERM or SIGINT while it
-    trains stops it at the next episode end, after a checkpoint (:class:`~.stopping.RunStopped`).
+    a last evaluation, the final checkpoint and the summary in ``config.json``. With ``stop_on_signal`` (the
+    command line's), a SIGTERM or SIGINT while it trains stops it at the next episode end, after a checkpoint
+    (:class:`~.stopping.RunStopped`).
     """
     if isinstance(run, ControlRun):  # feedback, mpc, dpc: no agent, no replay (pimbrl.control)
         return run.train()
@@ -287,8 +288,8 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None) -> RunSummar
         finally:
             run.run_dir.close()  # releases the run's lock
     log.open(run.t, cfg.total_steps, f"{cfg.method.name}/{cfg.agent.name} {cfg.env} seed {cfg.seed}")
-    # the log is closed however the run ends; a SIGTERM or SIGINT stops it at its next episode end, checkpointed
-    with contextlib.closing(log), StopRequest() as stop:
+    # the log is closed however the run ends; with stop_on_signal a SIGTERM or SIGINT stops it at its next episode end
+    with contextlib.closing(log), StopRequest(active=stop_on_signal) as stop:
         run.collector.reset(first=run.t == 0)
         while run.t < cfg.total_steps:
             # 1. act in the real environment (uniformly random during warm-up) and store the transition

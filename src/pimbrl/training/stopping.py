@@ -2,16 +2,20 @@
 
 A batch scheduler (SLURM, a cloud's preemption, ``kill``) ends a job with SIGTERM and a grace period before
 SIGKILL. Without a handler, the process dies at once and the run goes back to its last checkpoint, which for
-a short run (3,000 steps, a checkpoint due every 5,000) is its start. While :func:`train` runs, the first
-SIGTERM or SIGINT is only noted; at the next episode end the loop writes a checkpoint and raises
-:class:`RunStopped`, and ``pimbrl resume`` continues from there exactly. A second signal stops at once (the
-usual Ctrl-C twice). A signal the process ignores (SIGINT in a job a shell started in the background) stays
-ignored.
+a short run (3,000 steps, a checkpoint due every 5,000) is its start. While the command line's ``train`` and
+``resume`` (and so a study's runs) train, the first SIGTERM or SIGINT is only noted; at the next episode end
+the loop writes a checkpoint and raises :class:`RunStopped`, and ``pimbrl resume`` continues from there
+exactly. A SIGINT after that stops at once (Ctrl-C twice); a repeated SIGTERM does not, since a scheduler
+signals every process of a job and a study's driver passes its SIGTERM on, so a run often gets two (SIGKILL
+stops at once). A signal the process ignores (SIGINT in a job a shell started in the background) stays
+ignored. Python code calling :func:`~pimbrl.training.train` keeps the usual KeyboardInterrupt unless it asks
+for this (``stop_on_signal=True``).
 """
 
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from types import FrameType, TracebackType
 from typing import Any
@@ -37,13 +41,15 @@ class RunStopped(Exception):  # noqa: N818 - not an error: the stop that was ask
 
 
 class StopRequest:
-    """While entered, SIGTERM and SIGINT set :attr:`signum` instead of ending the process; a second ends it.
+    """While entered (and ``active``), SIGTERM and SIGINT set :attr:`signum` instead of ending the process.
 
-    Off the main thread (a Ray task's, say) signal handlers cannot be set; it then does nothing and
-    :attr:`signum` stays ``None``.
+    After a stop was noted, a SIGINT raises KeyboardInterrupt at once; another SIGTERM is noted again and
+    changes nothing. Off the main thread signal handlers cannot be set; it then does nothing and
+    :attr:`signum` stays ``None``, as it does when not ``active``.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, active: bool = True) -> None:
+        self.active = active
         self.signum: int | None = None
         self._previous: dict[int, Any] = {}
 
@@ -53,17 +59,25 @@ class StopRequest:
         return self.signum is not None
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
-        if self.signum is not None:  # asked twice: stop now, as without the handler
-            self.__exit__(None, None, None)
-            raise KeyboardInterrupt
+        if self.signum is not None:
+            if signum == signal.SIGINT:  # Ctrl-C again: stop now, as without the handler
+                self.__exit__(None, None, None)
+                raise KeyboardInterrupt
+            return  # the same stop asked again (a job's SIGTERM, and the driver's copy of it)
         self.signum = signum
+        again = "Ctrl-C again stops at once" if signum == signal.SIGINT else "SIGKILL stops at once"
+        print(
+            f"pimbrl: {signal.Signals(signum).name}: stopping at the end of this episode, with a checkpoint ({again})",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def __enter__(self) -> StopRequest:
-        if threading.current_thread() is not threading.main_thread():
+        if not self.active or threading.current_thread() is not threading.main_thread():
             return self
         for sig in STOP_SIGNALS:
             previous = signal.getsignal(sig)
-            if previous is signal.SIG_IGN:  # ignored by whoever started us: stays so
+            if previous is signal.SIG_IGN or previous is None:  # ignored by whoever started us, or set outside Python
                 continue
             self._previous[sig] = previous
             signal.signal(sig, self._handle)
