@@ -36,15 +36,21 @@ def _tables(path: Path) -> dict[str, list[dict]]:
     return {name: [{k: v for k, v in r.items() if not any(t in k for t in timing)} for r in rs] for name, rs in rows.items()}
 
 
-def test_the_first_signal_is_noted_the_second_stops_and_the_handlers_come_back() -> None:
-    before = signal.getsignal(signal.SIGTERM)
-    with StopRequest() as stop:
-        assert not stop.requested
-        os.kill(os.getpid(), signal.SIGTERM)
-        assert stop.signum == signal.SIGTERM  # noted, the process goes on
-        with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)  # a second signal: at once
-    assert signal.getsignal(signal.SIGTERM) is before
+def test_the_first_signal_is_noted_a_ctrl_c_after_it_stops_and_the_handlers_come_back() -> None:
+    # Python's own SIGINT handler, as in a terminal (a pytest-xdist worker starts with SIGINT ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        before = signal.getsignal(signal.SIGTERM)
+        with StopRequest() as stop:
+            assert not stop.requested
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert stop.signum == signal.SIGTERM  # noted, the process goes on
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C after it: at once
+        assert signal.getsignal(signal.SIGTERM) is before
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_a_repeated_sigterm_is_the_same_stop_and_an_inactive_request_sets_nothing(capsys) -> None:
