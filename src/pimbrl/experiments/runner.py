@@ -16,7 +16,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from ..config import ConfigError
 from ..fileio import UnsafeFileError, atomic_write_bytes, open_below
 from ..training.config import TrainConfig, config_from_dict, config_to_dict
 from ..training.rundir import RunDirectory
+from ..training.stopping import take_signal
 
 __all__ = [
     "CHILD_LOG",
@@ -372,10 +372,7 @@ def run_all(
                 out.close()
                 if _stopped(proc.returncode):  # a signal stopped it (checkpointed where it could)
                     failed.append(spec)
-                    log(
-                        f"stopped {spec.label} seed {spec.seed} by a signal (exit code {proc.returncode}): the same "
-                        "command again resumes it from its last checkpoint"
-                    )
+                    log(_stopped_line(spec, proc.returncode))
                 elif proc.returncode != 0:
                     failed.append(spec)
                     child_log = Path(spec.path) / CHILD_LOG
@@ -395,13 +392,21 @@ def run_all(
             proc.wait()
             out.close()
             if _stopped(proc.returncode):
-                log(f"stopped {spec.label} seed {spec.seed} (exit code {proc.returncode}): the same command again resumes it")
+                log(_stopped_line(spec, proc.returncode))
     return failed
 
 
 def _stopped(returncode: int) -> bool:
     """Whether a child's exit status says a SIGINT or SIGTERM stopped it (handled: 130, 143; or not: -2, -15)."""
     return returncode in STOPPED_STATUSES or -returncode in (signal.SIGINT, signal.SIGTERM)
+
+
+def _stopped_line(spec: RunSpec, returncode: int) -> str:
+    """The driver's line for a child a signal stopped."""
+    return (
+        f"stopped {spec.label} seed {spec.seed} (exit code {returncode}): the same command again resumes it "
+        "from its last checkpoint"
+    )
 
 
 class _SigtermFlag:
@@ -417,10 +422,7 @@ class _SigtermFlag:
 
     def __init__(self) -> None:
         self.signum: int | None = None
-        self.previous: Any = None
-        main = threading.current_thread() is threading.main_thread()
-        if main and signal.getsignal(signal.SIGTERM) not in (signal.SIG_IGN, None):
-            self.previous = signal.signal(signal.SIGTERM, self._note)
+        self.previous: Any = take_signal(signal.SIGTERM, self._note)
 
     def _note(self, signum: int, frame: Any) -> None:
         self.signum = signum

@@ -20,10 +20,25 @@ import threading
 from types import FrameType, TracebackType
 from typing import Any
 
-__all__ = ["STOP_SIGNALS", "RunStopped", "StopRequest"]
+__all__ = ["STOP_SIGNALS", "RunStopped", "StopRequest", "take_signal"]
 
 #: the signals that ask a run to stop at its next checkpoint
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+def take_signal(sig: int, handler: Any) -> Any:
+    """Install ``handler`` for ``sig`` and return the handler it replaced; ``None`` where it installs nothing.
+
+    Nothing is installed off the main thread (where Python cannot set handlers), where ``sig`` is ignored (by
+    whoever started the process: it stays so) or where its handler was set outside Python.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(sig)
+    if previous is signal.SIG_IGN or previous is None:
+        return None
+    signal.signal(sig, handler)
+    return previous
 
 
 class RunStopped(Exception):  # noqa: N818 - not an error: the stop that was asked for
@@ -73,14 +88,11 @@ class StopRequest:
         )
 
     def __enter__(self) -> StopRequest:
-        if not self.active or threading.current_thread() is not threading.main_thread():
-            return self
-        for sig in STOP_SIGNALS:
-            previous = signal.getsignal(sig)
-            if previous is signal.SIG_IGN or previous is None:  # ignored by whoever started us, or set outside Python
-                continue
-            self._previous[sig] = previous
-            signal.signal(sig, self._handle)
+        if self.active:
+            for sig in STOP_SIGNALS:
+                previous = take_signal(sig, self._handle)
+                if previous is not None:
+                    self._previous[sig] = previous
         return self
 
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
