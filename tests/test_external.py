@@ -169,3 +169,26 @@ def test_controlgym_priors_match_the_simulator() -> None:
             v = etd.step(v, lambda w, physics=physics, f=f: physics.nonlinear(w, f))
         error = np.abs(v.numpy() - out.state).max() / np.abs(out.state - u).max()
         assert error < tolerance, (env_id, error)  # the prior's coarse step is the simulator's scheme
+
+
+@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["burgers", "allen_cahn"])
+def test_controlgym_shortcuts_are_bit_for_bit(name: str) -> None:
+    """The adapter's cheaper noise draws and cached forcing give controlgym's states, rewards and draws exactly."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems as cg
+
+    plain, adapter = cg.make_controlgym(name), cg.ControlGymPDE(name)
+    assert isinstance(adapter.pde.rng, cg._ZeroNoiseDraws)
+    rng = np.random.default_rng(0)
+    for reset in ({"seed": 5}, {"state": np.linspace(-0.5, 0.5, cg.N_STATE) ** 2}, {}):
+        plain.reset(**reset)
+        adapter.reset(seed=reset.get("seed"), options={"state": reset["state"]} if "state" in reset else None)
+        assert isinstance(adapter.pde.rng, cg._ZeroNoiseDraws)  # a seeded reset's new generator is wrapped too
+        for a in rng.uniform(-3.0, 3.0, size=(4, cg.N_ACTION)):
+            with np.errstate(all="ignore"):
+                reward = plain.step(a)[1]
+            assert adapter.step(a)[1] == float(reward)
+            assert plain.state.tobytes() == adapter.pde.state.tobytes()
+        assert plain.rng.bit_generator.state == adapter.pde.rng.bit_generator.state
