@@ -25,7 +25,7 @@ undoes controlgym's quirks, measured on 1.0.0:
   expressions in the same order with the transform and the forcing of the step's action computed once.
 
 With both, states, rewards and the generator's stream are bit for bit controlgym's, and a step takes about a
-sixth of the CPU time (``benchmarks/bench_controlgym_step.py`` checks the equality and measures the time).
+fifth of the CPU time (``benchmarks/bench_controlgym_step.py`` checks the equality and measures the time).
 
 The priors declare the equations controlgym integrates (its source, ``envs/burgers.py`` and
 ``envs/allen_cahn.py``): pseudo-spectral ETDRK4 there; here the same semi-discrete equations with
