@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -28,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from pimbrl.experiments.runner import pinned_environment
 
 ROOT = Path(__file__).resolve().parents[1]
 IMPORT = "benchmarks/controlgym_systems.py"
@@ -50,7 +51,7 @@ def run_compare(alias: str, seeds: int, jobs: int, root: Path) -> list[str]:
     """``pimbrl compare`` of the three methods on one system; returns the command."""
     cmd = [sys.executable, "-m", "pimbrl.cli", "compare", alias, "--import", IMPORT, "--methods", ",".join(METHODS)]
     cmd += ["--seeds", str(seeds), "--jobs", str(jobs), "--run-dir", str(root / alias)]
-    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    subprocess.run(cmd, check=True, cwd=ROOT, env=pinned_environment(1))  # every pool of the driver at one thread
     return cmd
 
 
