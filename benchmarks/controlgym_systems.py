@@ -73,28 +73,23 @@ def controlgym_envs() -> Any:
         warnings.filters[:] = saved
 
 
-class _ZeroNoiseDraws:
-    """A controlgym env's generator whose zero-covariance Gaussian draws skip numpy's SVD of the covariance.
+class _ZeroNoiseDraws(np.random.Generator):
+    """A numpy generator whose zero-covariance Gaussian draws skip numpy's SVD of the covariance.
 
     ``Generator.multivariate_normal(mean, cov)`` draws ``len(mean)`` standard normals, factors ``cov`` by an SVD
     and returns ``mean + z @ (sqrt(s) * vh)``: with ``cov`` all zeros that is ``mean + 0`` whatever ``z`` is.
-    Here the same ``len(mean)`` normals are drawn (the generator's stream goes on exactly as before) and
-    ``mean + 0.0`` is returned. Any other call, and every other attribute, goes to the generator itself.
+    Here the same ``len(mean)`` normals are drawn, so the stream goes on exactly as before, and ``mean + 0.0``
+    is returned. Any other call is numpy's own. Built on the bit generator of the env's generator, it carries
+    that generator's stream on; a copy or a pickle of it is a plain ``Generator`` with the same state.
     """
-
-    def __init__(self, rng: np.random.Generator) -> None:
-        self.generator = rng
 
     def multivariate_normal(self, mean: Any, cov: Any, *args: Any, **kwargs: Any) -> Any:
         """numpy's draw; for a zero ``cov`` of shape ``(n, n)`` and a 1-d ``mean`` of ``n``, without the SVD."""
         m, c = np.asarray(mean, dtype=np.float64), np.asarray(cov)
         if args or kwargs or m.ndim != 1 or c.shape != (m.size, m.size) or c.any():
-            return self.generator.multivariate_normal(mean, cov, *args, **kwargs)
-        self.generator.standard_normal(m.size)
+            return super().multivariate_normal(mean, cov, *args, **kwargs)
+        self.standard_normal(m.size)
         return m + 0.0
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.generator, name)
 
 
 def make_controlgym(name: str, **kwargs: Any) -> Any:
@@ -135,6 +130,19 @@ def _cached_forcing_op(pde: Any) -> Any:
     return nonlinear_op
 
 
+class _CachedForcingOp:
+    """Stands in for a controlgym env's ``_compute_fourier_nonlinear_op``: :func:`_cached_forcing_op` of its env.
+
+    An object, not a closure, so that a deep copy of the env gets one bound to the copy.
+    """
+
+    def __init__(self, pde: Any) -> None:
+        self.pde = pde
+
+    def __call__(self) -> Any:
+        return _cached_forcing_op(self.pde)
+
+
 class ControlGymPDE(gym.Env):
     """A controlgym PDE env with gymnasium's conventions and the physical state in ``info["state"]``."""
 
@@ -149,11 +157,11 @@ class ControlGymPDE(gym.Env):
 
     def _skip_zero_noise_svd(self) -> None:
         if not isinstance(self.pde.rng, _ZeroNoiseDraws):
-            self.pde.rng = _ZeroNoiseDraws(self.pde.rng)
+            self.pde.rng = _ZeroNoiseDraws(self.pde.rng.bit_generator)
 
     def _cache_forcing(self) -> None:
         if self.pde.id in ("burgers", "allen_cahn"):  # the instance's attribute shadows the class's method
-            self.pde._compute_fourier_nonlinear_op = lambda: _cached_forcing_op(self.pde)
+            self.pde._compute_fourier_nonlinear_op = _CachedForcingOp(self.pde)
 
     def _state(self) -> np.ndarray:
         return np.array(self.pde.state, dtype=np.float64, copy=True)

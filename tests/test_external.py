@@ -192,3 +192,24 @@ def test_controlgym_shortcuts_are_bit_for_bit(name: str) -> None:
             assert adapter.step(a)[1] == float(reward)
             assert plain.state.tobytes() == adapter.pde.state.tobytes()
         assert plain.rng.bit_generator.state == adapter.pde.rng.bit_generator.state
+
+
+@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@pytest.mark.slow
+def test_a_copied_or_pickled_controlgym_env_steps_as_its_original() -> None:
+    """The adapter's stand-ins go with a deep copy and a pickle of the env, bound to the copy."""
+    import copy
+    import pickle
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems as cg
+
+    env = cg.ControlGymPDE("burgers")
+    env.reset(seed=2)
+    a = np.full(cg.N_ACTION, 0.5)
+    env.step(a)
+    twins = [copy.deepcopy(env), pickle.loads(pickle.dumps(env))]
+    assert all(twin.pde._compute_fourier_nonlinear_op.pde is twin.pde for twin in twins)  # bound to the copy
+    reward, state = env.step(a)[1], env.pde.state.tobytes()
+    for twin in twins:
+        assert twin.step(a)[1] == reward and twin.pde.state.tobytes() == state
