@@ -18,6 +18,7 @@ from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import TYPE_CHECKING  # noqa: E402
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 torch.set_num_threads(1)
@@ -60,6 +61,7 @@ def machine() -> dict[str, str]:
         "torch": torch.__version__,
         "cpu": cpu_model(),
         "cpu_id": cpu_identity() or "unknown",
+        "numpy": np.__version__,
         "commit": source_commit() or "unknown",
         "threads": "1 (NUMBA/OMP/MKL/OPENBLAS_NUM_THREADS=1, torch.set_num_threads(1))",
     }

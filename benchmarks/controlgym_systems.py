@@ -24,8 +24,9 @@ undoes controlgym's quirks, measured on 1.0.0:
   transforms the 256 x 8 actuator matrix anew each time: :func:`_cached_forcing_op` evaluates the same
   expressions in the same order with the transform and the forcing of the step's action computed once.
 
-With both, states, rewards and the generator's stream are bit for bit controlgym's, and a step takes about a
-fifth of the CPU time (``benchmarks/bench_controlgym_step.py`` checks the equality and measures the time).
+With both, states, rewards and the generator's stream are bit for bit controlgym's (checked with numpy 2.4.6),
+and a step takes about a fifth of the CPU time (``benchmarks/bench_controlgym_step.py`` checks the equality and
+measures the time).
 
 The priors declare the equations controlgym integrates (its source, ``envs/burgers.py`` and
 ``envs/allen_cahn.py``): pseudo-spectral ETDRK4 there; here the same semi-discrete equations with
@@ -79,17 +80,25 @@ class _ZeroNoiseDraws(np.random.Generator):
     ``Generator.multivariate_normal(mean, cov)`` draws ``len(mean)`` standard normals, factors ``cov`` by an SVD
     and returns ``mean + z @ (sqrt(s) * vh)``: with ``cov`` all zeros that is ``mean + 0`` whatever ``z`` is.
     Here the same ``len(mean)`` normals are drawn, so the stream goes on exactly as before, and ``mean + 0.0``
-    is returned. Any other call is numpy's own. Built on the bit generator of the env's generator, it carries
-    that generator's stream on; a copy or a pickle of it is a plain ``Generator`` with the same state.
+    is returned. Any other call (a ``size`` or ``method``, a nonzero or complex covariance, a complex mean) is
+    numpy's own. Built on the bit generator of the env's generator, it carries that generator's stream on; a
+    copy or a pickle of it is one too, on the copied bit generator. That the stream is numpy's (the normals
+    drawn before the SVD, ``len(mean)`` of them) was checked with numpy 2.4.6 (tests/test_external.py).
     """
 
     def multivariate_normal(self, mean: Any, cov: Any, *args: Any, **kwargs: Any) -> Any:
-        """numpy's draw; for a zero ``cov`` of shape ``(n, n)`` and a 1-d ``mean`` of ``n``, without the SVD."""
+        """numpy's draw; for a zero ``cov`` of shape ``(n, n)`` and a 1-d real ``mean`` of ``n``, without the SVD."""
+        if args or kwargs or np.iscomplexobj(mean) or np.iscomplexobj(cov):
+            return super().multivariate_normal(mean, cov, *args, **kwargs)
         m, c = np.asarray(mean, dtype=np.float64), np.asarray(cov)
-        if args or kwargs or m.ndim != 1 or c.shape != (m.size, m.size) or c.any():
+        if m.ndim != 1 or c.shape != (m.size, m.size) or c.any():
             return super().multivariate_normal(mean, cov, *args, **kwargs)
         self.standard_normal(m.size)
         return m + 0.0
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        """A copy or a pickle is a :class:`_ZeroNoiseDraws` again (numpy's own would be a plain ``Generator``)."""
+        return (type(self), (self.bit_generator,))
 
 
 def make_controlgym(name: str, **kwargs: Any) -> Any:

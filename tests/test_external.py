@@ -210,6 +210,71 @@ def test_a_copied_or_pickled_controlgym_env_steps_as_its_original() -> None:
     env.step(a)
     twins = [copy.deepcopy(env), pickle.loads(pickle.dumps(env))]
     assert all(twin.pde._compute_fourier_nonlinear_op.pde is twin.pde for twin in twins)  # bound to the copy
+    assert all(isinstance(twin.pde.rng, cg._ZeroNoiseDraws) for twin in twins)  # the shortcut goes with the copy
+    assert all(twin.pde.rng.bit_generator is not env.pde.rng.bit_generator for twin in twins)  # on its own stream
     reward, state = env.step(a)[1], env.pde.state.tobytes()
     for twin in twins:
         assert twin.step(a)[1] == reward and twin.pde.state.tobytes() == state
+        assert twin.pde.rng.bit_generator.state == env.pde.rng.bit_generator.state  # the same draws were taken
+
+
+@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+def test_the_adapters_step_takes_no_svd(monkeypatch) -> None:
+    """The shortcuts are taken: a zero-noise step of the adapter never factors a covariance (numpy's does)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems as cg
+
+    plain, adapter = cg.make_controlgym("burgers"), cg.ControlGymPDE("burgers")
+    assert isinstance(adapter.pde._compute_fourier_nonlinear_op, cg._CachedForcingOp)
+    plain.reset(seed=1)
+    adapter.reset(seed=1)
+
+    def no_svd(*args, **kwargs):
+        raise AssertionError("an SVD was taken")
+
+    monkeypatch.setattr(np.linalg, "svd", no_svd)
+    adapter.step(np.zeros(cg.N_ACTION))
+    with pytest.raises(AssertionError, match="an SVD was taken"), np.errstate(all="ignore"):
+        plain.step(np.zeros(cg.N_ACTION))  # the check can fail: controlgym's own step factors its covariances
+
+
+@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@pytest.mark.slow
+def test_controlgym_noise_is_still_numpys_where_it_is_not_zero() -> None:
+    """With process noise, the adapter hands each draw to numpy: states, rewards and stream stay controlgym's."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems as cg
+
+    plain, adapter = cg.make_controlgym("burgers", process_noise_cov=1e-4), cg.ControlGymPDE("burgers", process_noise_cov=1e-4)
+    plain.reset(seed=3)
+    adapter.reset(seed=3)
+    states = []
+    for a in np.random.default_rng(1).uniform(-1.0, 1.0, size=(3, cg.N_ACTION)):
+        with np.errstate(all="ignore"):
+            reward = plain.step(a)[1]
+        assert adapter.step(a)[1] == float(reward)
+        assert plain.state.tobytes() == adapter.pde.state.tobytes()
+        states.append(adapter.pde.state.copy())
+    assert plain.rng.bit_generator.state == adapter.pde.rng.bit_generator.state
+    quiet = cg.ControlGymPDE("burgers")
+    quiet.reset(seed=3)
+    for a in np.random.default_rng(1).uniform(-1.0, 1.0, size=(1, cg.N_ACTION)):
+        quiet.step(a)
+    assert not np.array_equal(quiet.pde.state, states[0])  # the noise was drawn, not dropped
+
+
+def test_zero_noise_draws_are_numpys_draws() -> None:
+    """Without controlgym: the zero-covariance shortcut returns numpy's values and leaves numpy's stream."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems as cg
+
+    for n in (1, 10, 256):
+        ours, theirs = cg._ZeroNoiseDraws(np.random.PCG64(7)), np.random.Generator(np.random.PCG64(7))
+        for mean in (np.zeros(n), np.linspace(-1.0, 1.0, n)):
+            got, want = ours.multivariate_normal(mean, np.zeros((n, n))), theirs.multivariate_normal(mean, np.zeros((n, n)))
+            assert got.tobytes() == want.tobytes()
+            assert ours.bit_generator.state == theirs.bit_generator.state
+        cov = 0.01 * np.eye(n)  # a nonzero covariance is numpy's own draw
+        assert ours.multivariate_normal(np.zeros(n), cov).tobytes() == theirs.multivariate_normal(np.zeros(n), cov).tobytes()
+    with pytest.raises(TypeError):  # as numpy: a complex mean is refused, not cast
+        cg._ZeroNoiseDraws(np.random.PCG64(0)).multivariate_normal(np.zeros(2, complex), np.zeros((2, 2)))
