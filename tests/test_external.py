@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+import types
 from pathlib import Path
 
 import gymnasium as gym
@@ -147,13 +148,27 @@ def test_a_simulator_without_the_state_in_info_is_refused() -> None:
         declare_external(OscillatorPrior, Opaque, "test/Opaque-v0")
 
 
-@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+#: controlgym is a benchmark-only install: the README's suite skips these tests, `.ci/run` installs it for them
+needs_controlgym = pytest.mark.skipif(
+    importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install"
+)
+
+
+def _controlgym_systems() -> types.ModuleType:
+    """``benchmarks/controlgym_systems.py``, imported (importing it registers controlgym's envs)."""
+    if str(ROOT / "benchmarks") not in sys.path:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+    import controlgym_systems
+
+    return controlgym_systems
+
+
+@needs_controlgym
 @pytest.mark.slow
 def test_controlgym_priors_match_the_simulator() -> None:
     import torch
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import controlgym_systems as cg
+    cg = _controlgym_systems()
 
     for env_id, tolerance in (("controlgym/Burgers-v0", 2e-3), ("controlgym/AllenCahn-v0", 2e-3)):
         task = gym.make(env_id).unwrapped.task
@@ -171,13 +186,12 @@ def test_controlgym_priors_match_the_simulator() -> None:
         assert error < tolerance, (env_id, error)  # the prior's coarse step is the simulator's scheme
 
 
-@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@needs_controlgym
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["burgers", "allen_cahn"])
 def test_controlgym_shortcuts_are_bit_for_bit(name: str) -> None:
     """The adapter's cheaper noise draws and cached forcing give controlgym's states, rewards and draws exactly."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import controlgym_systems as cg
+    cg = _controlgym_systems()
 
     plain, adapter = cg.make_controlgym(name), cg.ControlGymPDE(name)
     assert isinstance(adapter.pde.rng, cg._ZeroNoiseDraws)
@@ -194,15 +208,14 @@ def test_controlgym_shortcuts_are_bit_for_bit(name: str) -> None:
         assert plain.rng.bit_generator.state == adapter.pde.rng.bit_generator.state
 
 
-@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@needs_controlgym
 @pytest.mark.slow
 def test_a_copied_or_pickled_controlgym_env_steps_as_its_original() -> None:
     """The adapter's stand-ins go with a deep copy and a pickle of the env, bound to the copy."""
     import copy
     import pickle
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import controlgym_systems as cg
+    cg = _controlgym_systems()
 
     env = cg.ControlGymPDE("burgers")
     env.reset(seed=2)
@@ -218,11 +231,10 @@ def test_a_copied_or_pickled_controlgym_env_steps_as_its_original() -> None:
         assert twin.pde.rng.bit_generator.state == env.pde.rng.bit_generator.state  # the same draws were taken
 
 
-@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@needs_controlgym
 def test_the_adapters_step_takes_no_svd(monkeypatch) -> None:
     """The shortcuts are taken: a zero-noise step of the adapter never factors a covariance (numpy's does)."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import controlgym_systems as cg
+    cg = _controlgym_systems()
 
     plain, adapter = cg.make_controlgym("burgers"), cg.ControlGymPDE("burgers")
     assert isinstance(adapter.pde._compute_fourier_nonlinear_op, cg._CachedForcingOp)
@@ -238,36 +250,32 @@ def test_the_adapters_step_takes_no_svd(monkeypatch) -> None:
         plain.step(np.zeros(cg.N_ACTION))  # the check can fail: controlgym's own step factors its covariances
 
 
-@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@needs_controlgym
 @pytest.mark.slow
 def test_controlgym_noise_is_still_numpys_where_it_is_not_zero() -> None:
     """With process noise, the adapter hands each draw to numpy: states, rewards and stream stay controlgym's."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import controlgym_systems as cg
+    cg = _controlgym_systems()
 
     plain, adapter = cg.make_controlgym("burgers", process_noise_cov=1e-4), cg.ControlGymPDE("burgers", process_noise_cov=1e-4)
-    plain.reset(seed=3)
-    adapter.reset(seed=3)
-    states = []
-    for a in np.random.default_rng(1).uniform(-1.0, 1.0, size=(3, cg.N_ACTION)):
+    quiet = cg.ControlGymPDE("burgers")
+    for env in (plain, adapter, quiet):
+        env.reset(seed=3)
+    actions = np.random.default_rng(1).uniform(-1.0, 1.0, size=(3, cg.N_ACTION))
+    quiet.step(actions[0])
+    for i, a in enumerate(actions):
         with np.errstate(all="ignore"):
             reward = plain.step(a)[1]
         assert adapter.step(a)[1] == float(reward)
         assert plain.state.tobytes() == adapter.pde.state.tobytes()
-        states.append(adapter.pde.state.copy())
+        if i == 0:
+            assert not np.array_equal(quiet.pde.state, adapter.pde.state)  # the noise was drawn, not dropped
     assert plain.rng.bit_generator.state == adapter.pde.rng.bit_generator.state
-    quiet = cg.ControlGymPDE("burgers")
-    quiet.reset(seed=3)
-    for a in np.random.default_rng(1).uniform(-1.0, 1.0, size=(1, cg.N_ACTION)):
-        quiet.step(a)
-    assert not np.array_equal(quiet.pde.state, states[0])  # the noise was drawn, not dropped
 
 
-@pytest.mark.skipif(importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install")
+@needs_controlgym
 def test_zero_noise_draws_are_numpys_draws() -> None:
     """The zero-covariance shortcut alone: numpy's values and numpy's stream (importing the adapter needs controlgym)."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import controlgym_systems as cg
+    cg = _controlgym_systems()
 
     for n in (1, 10, 256):
         ours, theirs = cg._ZeroNoiseDraws(np.random.PCG64(7)), np.random.Generator(np.random.PCG64(7))
