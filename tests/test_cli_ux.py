@@ -397,6 +397,7 @@ def test_compare_status_line_reads_the_run_directory(tmp_path) -> None:
     assert child_status(spec) == "mfrl seed 0: 1,200/2,000 steps  test return -800.25  111 steps/s"
     tuning = plan_runs("pimbrl/Pendulum-v0", ["mfrl"], [0], tmp_path, {"total_steps": 2000, "eval_protocol": "validation"})[0]
     assert child_status(tuning) == "mfrl seed 0: 1,200/2,000 steps  validation return -800.25  111 steps/s"
+    assert child_status(spec, returns=False) == "mfrl seed 0: 1,200/2,000 steps  111 steps/s"  # a confirmatory run's
 
 
 TINY_COMPARE = ["--warmup-steps", "100", "--update-after", "100", "--eval-every", "100", "--eval-episodes", "2",

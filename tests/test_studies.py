@@ -419,6 +419,19 @@ def test_a_confirmatory_spec_must_be_committed_and_unchanged(tmp_path) -> None:
     assert study_label(load_spec(_spec(tmp_path)), {})[0] == "exploratory"
 
 
+def test_a_confirmatory_study_s_status_lines_leave_the_returns_out(tmp_path, monkeypatch) -> None:
+    """The driver's lines of a confirmatory study show steps, not returns; an exploratory study's show both."""
+    import pimbrl.experiments.engine as engine
+    import pimbrl.experiments.registration as registration
+
+    seen: list[bool] = []
+    monkeypatch.setattr(engine, "run_all", lambda specs, **kw: seen.append(kw["returns"]) or [])
+    monkeypatch.setattr(registration, "start_study", lambda *a, **kw: {})
+    for kind in ("confirmatory", "exploratory"):
+        engine.run_study(load_spec(_spec(tmp_path, name=f"{kind}.yaml", kind=kind)), tmp_path / kind, log=lambda line: None)
+    assert seen == [False, True]
+
+
 @pytest.mark.slow
 def test_the_pages_put_confirmatory_studies_and_their_verdicts_first_and_name_those_still_running(tmp_path, monkeypatch) -> None:
     from pimbrl.experiments.report import write_pages
@@ -567,6 +580,10 @@ def test_status_counts_a_dpc_runs_gradient_steps(tmp_path, capsys) -> None:
         assert "| dpc | 0/2 | 1 (100/400 DPC steps) | 1 | 0 |" in text
     finally:
         writer.close()
+    from pimbrl.experiments.runner import RunSpec, child_status
+
+    line = child_status(RunSpec("dpc", runs[0].seed, runs[0].path, runs[0].config))
+    assert line == f"dpc seed {runs[0].seed}: 100/400 DPC steps"  # the driver's line, not "starting" throughout
     for damaged in (
         "[1]",
         '{"dpc": [1]}',

@@ -277,7 +277,7 @@ def run_study(
             done = (lambda s: keep([by_run[str(s.path)]])) if keep_archive and archive is not None else None
             bad = run_all(
                 [s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports,
-                on_done=done,
+                on_done=done, returns=spec.kind != "confirmatory",
             )  # fmt: skip
             return [str(s.path.relative_to(root)) for s in bad]
 

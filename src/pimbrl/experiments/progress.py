@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..training.control_run import CONTROL_FILE, read_stages
+from ..training.control_run import dpc_progress
 from ..training.methods import DPC
 from ..training.rundir import RunDirectory
 from .engine import StudyRun, plan_study
@@ -74,7 +74,7 @@ def _read_progress(run: StudyRun) -> RunProgress:
     except FileNotFoundError:
         return RunProgress(run, "not started", 0, None)
     if isinstance(run.config.method, DPC):  # no evaluations while it trains: its steps are in control.json
-        steps, wall = _dpc_progress(rd)
+        steps, wall = dpc_progress(rd)
     else:
         rows = rd.evaluations.read()
         steps = int(float(rows[-1]["step"])) if rows else 0
@@ -87,25 +87,6 @@ def _read_progress(run: StudyRun) -> RunProgress:
     else:
         state = "interrupted"
     return RunProgress(run, state, steps, wall)
-
-
-def _dpc_progress(rd: RunDirectory) -> tuple[int, float | None]:
-    """A DPC run's gradient steps and wall-clock from its ``control.json`` (0 and ``None`` before it exists).
-
-    A damaged file (not JSON, or a field of the wrong type) is a :class:`ValueError` naming it.
-    """
-    payload = read_stages(rd)
-    if payload is None:
-        return 0, None
-    path = rd.path / CONTROL_FILE
-    dpc = payload.get("dpc", {})
-    steps = dpc.get("steps", 0) if isinstance(dpc, dict) else None
-    wall = payload.get("wall_s")
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
-        raise ValueError(f"{path}: no count of DPC steps (dpc.steps) in it; delete the run's directory to restart it")
-    if wall is not None and (not isinstance(wall, (int, float)) or isinstance(wall, bool)):
-        raise ValueError(f"{path}: wall_s is not a number; delete the run's directory to restart it")
-    return steps, None if wall is None else float(wall)
 
 
 def study_progress(spec: StudySpec, root: str | Path, runs: Sequence[StudyRun] | None = None) -> list[RunProgress]:

@@ -25,6 +25,8 @@ from typing import Any
 from ..config import ConfigError
 from ..fileio import UnsafeFileError, atomic_write_bytes, open_below
 from ..training.config import TrainConfig, config_from_dict, config_to_dict
+from ..training.control_run import dpc_progress
+from ..training.methods import DPC
 from ..training.rundir import RunDirectory
 from ..training.stopping import take_signal
 
@@ -231,13 +233,21 @@ def _number(row: dict[str, str] | None, key: str) -> float | None:
     return value if value is not None and math.isfinite(value) and abs(value) < 1e15 else None
 
 
-def child_status(spec: RunSpec) -> str:
+def child_status(spec: RunSpec, returns: bool = True) -> str:
     """One status line of a running child, read from its run directory.
 
     ``"pimbrl seed 0: 12,400/200,000 steps  test return -63.20  41 steps/s"`` (what is known so far; a
-    tuning run's evaluations say ``validation return``).
+    tuning run's evaluations say ``validation return``). A DPC run, which evaluates only once it has trained,
+    shows its gradient steps through the scheme: ``"dpc seed 0: 1,250/3,000 DPC steps"``. ``returns=False``
+    (a confirmatory study's runs) leaves the return out: its outcomes are read once the study has finished.
     """
     head = f"{spec.label} seed {spec.seed}: "
+    if isinstance(spec.config.method, DPC):
+        try:
+            done = dpc_progress(RunDirectory(spec.path))[0]
+        except (OSError, ValueError):
+            done = 0
+        return head + (f"{done:,d}/{int(spec.config.method.iterations):,d} DPC steps" if done else "starting")
     evaluation = _last_row(spec.path / "evaluations.csv")
     metrics = _last_row(spec.path / "metrics.csv")
     episode = _last_row(spec.path / "episodes.csv")
@@ -246,7 +256,7 @@ def child_status(spec: RunSpec) -> str:
         return head + "starting"
     parts = [f"{int(max(steps)):,d}/{spec.config.total_steps:,d} steps"]
     mean = _number(evaluation, "return_mean")
-    if mean is not None:  # a tuning run's evaluations play the validation draws, not the test pool
+    if mean is not None and returns:  # a tuning run's evaluations play the validation draws, not the test pool
         parts.append(f"{spec.config.eval_protocol} return {mean:.2f}")
     sps = _number(metrics, "steps_per_s")
     if sps is not None:
@@ -257,9 +267,10 @@ def child_status(spec: RunSpec) -> str:
 class _StatusLines:
     """The running children's status lines on stderr: a live display on a terminal, plain lines otherwise."""
 
-    def __init__(self, enabled: bool) -> None:
+    def __init__(self, enabled: bool, returns: bool = True) -> None:
         from rich.console import Console
 
+        self.returns = returns  # False: a confirmatory study's lines show no return
         self.console = Console(stderr=True)
         self.enabled = enabled
         self.live: Any = None
@@ -279,7 +290,7 @@ class _StatusLines:
         if now - self.last < every:
             return
         self.last = now
-        lines = [child_status(spec) for spec in specs]
+        lines = [child_status(spec, self.returns) for spec in specs]
         if self.live is not None:
             from rich.text import Text
 
@@ -311,6 +322,7 @@ def run_all(
     status: bool = True,
     imports: Sequence[str] = (),
     on_done: Callable[[RunSpec], None] | None = None,
+    returns: bool = True,
 ) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
@@ -320,7 +332,8 @@ def run_all(
     (:func:`pinned_environment`). A child's output goes to ``<run>/compare.log``. With ``status``, one line
     per running child is shown on stderr (:func:`child_status`). ``imports``: the ``--import`` arguments each
     child gets (the modules or files that declare a user's system). ``on_done(spec)`` is called as each run
-    finishes well (while the others train).
+    finishes well (while the others train). ``returns=False``: the status lines leave the returns out (a
+    confirmatory study's).
     """
     pending = []
     imported = [arg for spec in imports for arg in ("--import", spec)]
@@ -348,7 +361,7 @@ def run_all(
         pending.append((spec, cmd))
     failed: list[RunSpec] = []
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
-    lines = _StatusLines(status and bool(pending))
+    lines = _StatusLines(status and bool(pending), returns)
     sigterm = _SigtermFlag()
     try:
         while pending or running:

@@ -43,7 +43,7 @@ from .rundir import RunDirectory, steps_to_threshold
 from .summary import RunSummary
 from .threads import pin_threads
 
-__all__ = ["CONTROL_FILE", "ControlRun", "read_stages"]
+__all__ = ["CONTROL_FILE", "ControlRun", "dpc_progress", "read_stages"]
 
 #: the stage file of a control run
 CONTROL_FILE = "control.json"
@@ -58,6 +58,25 @@ def read_stages(run_dir: RunDirectory) -> dict[str, Any] | None:
     if not isinstance(payload, dict):
         raise ValueError(f"{path} is not a JSON object; delete it to restart the run")
     return payload
+
+
+def dpc_progress(rd: RunDirectory) -> tuple[int, float | None]:
+    """A DPC run's gradient steps and wall-clock from its ``control.json`` (0 and ``None`` before it exists).
+
+    A damaged file (not JSON, or a field of the wrong type) is a :class:`ValueError` naming it.
+    """
+    payload = read_stages(rd)
+    if payload is None:
+        return 0, None
+    path = rd.path / CONTROL_FILE
+    dpc = payload.get("dpc", {})
+    steps = dpc.get("steps", 0) if isinstance(dpc, dict) else None
+    wall = payload.get("wall_s")
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+        raise ValueError(f"{path}: no count of DPC steps (dpc.steps) in it; delete the run's directory to restart it")
+    if wall is not None and (not isinstance(wall, (int, float)) or isinstance(wall, bool)):
+        raise ValueError(f"{path}: wall_s is not a number; delete the run's directory to restart it")
+    return steps, None if wall is None else float(wall)
 
 
 @dataclass
