@@ -179,9 +179,10 @@ class ControlGymPDE(gym.Env):
         """``reset(seed=s)`` draws controlgym's initial state; ``options={"state": u}`` starts from ``u``."""
         super().reset(seed=seed)
         state = None if options is None or options.get("state") is None else np.array(options["state"], dtype=np.float64)
+        if seed is not None:  # controlgym's new generator, default_rng(seed), as the shortcut (its reset's draw too)
+            self.pde.rng = _ZeroNoiseDraws(np.random.default_rng(seed).bit_generator)
         with np.errstate(all="ignore"):
-            self.pde.reset(seed=seed, state=state)  # a seed gives the env a new generator
-        self._skip_zero_noise_svd()
+            self.pde.reset(seed=None, state=state)  # seed=None: the generator set here is kept
         u = self._state()
         return u.astype(np.float32), {"state": u}
 
