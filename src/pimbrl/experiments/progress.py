@@ -17,6 +17,7 @@ from ..training.control_run import dpc_progress
 from ..training.methods import DPC
 from ..training.rundir import RunDirectory
 from .engine import StudyRun, plan_study
+from .runner import dpc_steps_text
 from .spec import StudySpec
 
 __all__ = ["RunProgress", "progress_lines", "study_progress"]
@@ -56,7 +57,7 @@ class RunProgress:
     def steps_text(self) -> str:
         """How far a running run has come: ``"1,200/3,000"``, ``"750/3,000 DPC steps"`` or ``"a controller"``."""
         if isinstance(self.run.config.method, DPC):
-            return f"{self.steps:,}/{self.total_steps:,} DPC steps"
+            return dpc_steps_text(self.steps, self.total_steps)
         return "a controller" if self.run.config.control else f"{self.steps:,}/{self.total_steps:,}"
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "check_reuse",
     "child_status",
     "config_differences",
+    "dpc_steps_text",
     "lock_comparison",
     "pinned_environment",
     "run_all",
@@ -233,6 +234,11 @@ def _number(row: dict[str, str] | None, key: str) -> float | None:
     return value if value is not None and math.isfinite(value) and abs(value) < 1e15 else None
 
 
+def dpc_steps_text(steps: int, total: int) -> str:
+    """How far a DPC run has come, as the driver's lines and ``pimbrl study status`` say it: ``"750/3,000 DPC steps"``."""
+    return f"{steps:,}/{total:,} DPC steps"
+
+
 def child_status(spec: RunSpec, returns: bool = True) -> str:
     """One status line of a running child, read from its run directory.
 
@@ -247,7 +253,7 @@ def child_status(spec: RunSpec, returns: bool = True) -> str:
             done = dpc_progress(RunDirectory(spec.path))[0]
         except (OSError, ValueError):
             done = 0
-        return head + (f"{done:,d}/{int(spec.config.method.iterations):,d} DPC steps" if done else "starting")
+        return head + (dpc_steps_text(done, int(spec.config.method.iterations)) if done else "starting")
     evaluation = _last_row(spec.path / "evaluations.csv")
     metrics = _last_row(spec.path / "metrics.csv")
     episode = _last_row(spec.path / "episodes.csv")
