@@ -419,6 +419,30 @@ def test_a_confirmatory_spec_must_be_committed_and_unchanged(tmp_path) -> None:
     assert study_label(load_spec(_spec(tmp_path)), {})[0] == "exploratory"
 
 
+def test_a_record_s_imported_files_are_judged_by_their_bytes_not_the_folder_they_were_read_from(tmp_path) -> None:
+    """A confirmatory record reported from another clone keeps its label; an imported file that changed loses it."""
+    import hashlib
+
+    system = tmp_path / "my_system.py"
+    system.write_text("# a user's system\n")
+    path = _spec(tmp_path, kind="confirmatory", imports=["my_system.py"], record={"path": "r.json", "format": "study"})
+    spec = load_spec(path)
+    digest = hashlib.sha256(system.read_bytes()).hexdigest()
+    registration = {
+        "spec_sha256": spec.sha256,
+        "first_run_started_unix": 2.0,
+        "registered": {"commit": "0" * 40, "committed_unix": 1.0},
+        "imports_sha256": {"/elsewhere/clone/my_system.py": digest},  # the clone the study ran in
+    }
+    record = {"registration": registration, "spec_sha256": spec.sha256, "runs": []}
+    assert study_label(spec, record)[0] == "confirmatory"
+    system.write_text("# a user's system, edited after the runs\n")
+    assert study_label(spec, record) == (
+        "exploratory",
+        "a file the spec imports (a system's code) changed after the first run started",
+    )
+
+
 def test_a_confirmatory_study_s_status_lines_leave_the_returns_out(tmp_path, monkeypatch) -> None:
     """The driver's lines of a confirmatory study show steps, not returns; an exploratory study's show both."""
     import pimbrl.experiments.engine as engine

@@ -67,7 +67,12 @@ def committed_spec(path: Path, sha256: str) -> dict[str, Any] | None:
 
 
 def imports_sha256(spec: StudySpec) -> dict[str, str]:
-    """The SHA-256 of each file the spec imports (a user's system is part of what a study ran)."""
+    """The SHA-256 of each file the spec imports (a user's system is part of what a study ran).
+
+    Keyed by the file's absolute path, in the spec's order. :func:`study_label` compares the digests in that
+    order, not the paths: the spec's SHA-256 already pins its import list, and a record reported from another
+    clone or machine reads the same files from another folder.
+    """
     import hashlib
 
     out = {}
@@ -141,7 +146,7 @@ def study_label(spec: StudySpec, record: dict[str, Any]) -> tuple[str, str]:
     shas = {reg.get("spec_sha256"), record.get("spec_sha256"), spec.sha256, *reg.get("spec_sha256_seen", [])}
     if len(shas) != 1:
         return "exploratory", "the spec changed after its first run started (its SHA-256 differs from the registered one)"
-    if reg.get("imports_sha256", {}) != imports_sha256(spec):
+    if list(reg.get("imports_sha256", {}).values()) != list(imports_sha256(spec).values()):
         return "exploratory", "a file the spec imports (a system's code) changed after the first run started"
     if record.get("missing") or record.get("mismatched") or any(not r.get("finished") for r in record.get("runs", [])):
         return "exploratory", "runs are missing, unfinished or of other settings"
