@@ -371,6 +371,14 @@ def test_a_report_never_reads_the_best_evaluation(tmp_path) -> None:
         "CPU: Some CPU (GenuineIntel family 6 model 1 stepping 2, flags 0badf00d) (not recorded for 1 of 4 runs); "
         "commit: 0000000000, 1111111111, 2222222222 (not recorded for 1 of 4 runs)."
     ) in text
+    runs[1]["provenance"]["cpu_id"] = "AuthenticAMD family 25 model 1 stepping 1, flags ecfefe0f"
+    text = study_report(spec, record).markdown  # two machines: the ids never split the line's fields
+    line = next(line for line in text.splitlines() if line.startswith("- **Runs**"))
+    assert line.split("; ")[1] == (
+        "CPU: Some CPU (AuthenticAMD family 25 model 1 stepping 1, flags ecfefe0f / GenuineIntel family 6 model 1 stepping 2, "
+        "flags 0badf00d) (not recorded for 1 of 4 runs)"
+    )
+    runs[1]["provenance"].pop("cpu_id")
     assert "made under another version" not in text
     record["spec_sha256"] = "f" * 64  # the spec file changed after the record was made: the report says so
     text = study_report(spec, record).markdown

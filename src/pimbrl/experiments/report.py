@@ -579,8 +579,8 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
     ids = sorted({str(r["provenance"]["cpu_id"]) for r in record["runs"] if (r.get("provenance") or {}).get("cpu_id")})
-    if ids:  # a masked model name is told apart by its family, model, stepping and flags
-        cpu += f" ({'; '.join(ids)})"
+    if ids:  # a masked model name is told apart by its family, model, stepping and flags; "; " ends the field
+        cpu += f" ({' / '.join(ids)})"
     if any(c != "None" for c in cpus):  # some runs name their CPU: say where others do not
         cpu += _not_recorded(record["runs"], "cpu")
     if any(c != "None" for c in commits):
