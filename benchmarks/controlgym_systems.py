@@ -41,12 +41,14 @@ import importlib.util
 import sys
 import types
 import warnings
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 
+from pimbrl.config import load_yaml
 from pimbrl.systems import Coefficient, FourierOperator, PeriodicPDESystem, declare_external, xp_of
 
 N_STATE, N_ACTION = 256, 8
@@ -272,19 +274,12 @@ class ControlGymAllenCahn(_ControlGymPrior):
         return -self.c * u**3
 
 
-#: 30 episodes; 10 test episodes every 500 steps (an episode of the external simulator takes 2-3 s here)
-PRESET: dict[str, Any] = {
-    "recipes": {
-        "default": {
-            "about": "the exploratory controlgym study's budget (docs/systems.md)",
-            "settings": {"total_steps": 3_000, "warmup_steps": 300, "update_after": 300, "eval_every": 500, "eval_episodes": 10},
-            "model_based": {"utd": 5.0, "imagine.rollout_length": 3, "model.start_after": 300, "physics.start_after": 300},
-        }
-    }
-}
+#: Burgers's recipes (default and best) in controlgym_burgers.yaml beside this file; Allen-Cahn has its default alone
+BURGERS_PRESET = Path(__file__).with_name("controlgym_burgers.yaml")
+PRESET: dict[str, Any] = {"recipes": {"default": load_yaml(BURGERS_PRESET.read_text())["recipes"]["default"]}}
 
 BURGERS = declare_external(
-    ControlGymBurgers, lambda: ControlGymPDE("burgers"), "controlgym/Burgers-v0", aliases=("cg-burgers",), preset=PRESET
+    ControlGymBurgers, lambda: ControlGymPDE("burgers"), "controlgym/Burgers-v0", aliases=("cg-burgers",), preset=BURGERS_PRESET
 )
 ALLEN_CAHN = declare_external(
     ControlGymAllenCahn, lambda: ControlGymPDE("allen_cahn"), "controlgym/AllenCahn-v0", aliases=("cg-allen-cahn",), preset=PRESET
