@@ -197,6 +197,31 @@ def test_dpc_learns_through_the_scheme_and_keeps_the_best_policy_on_validation()
     assert again.step() == trainer.step()  # the same next step: policy, optimiser, pool and stream restored
 
 
+def test_dpc_whose_every_gradient_step_was_skipped_stops_at_its_validation_with_the_fix() -> None:
+    """A scheme that blows up on some row of every batch gives no finite gradient: DPC says so, not a result."""
+    task = task_of(BURGERS, {})
+    plant = make_plant(task.physics)
+    step = plant.step
+
+    def blowing_up(u, a, k):  # the first row of every batch blows up in the scheme
+        u_next, r = step(u, a, k)
+        row = torch.ones(len(u), 1, dtype=u.dtype)
+        row[0] = float("nan")
+        return u_next * row, r
+
+    plant.step = blowing_up  # type: ignore[method-assign]
+    trainer = DPCTrainer(DPCPolicy(plant, (16,), seed=0), task, horizon=3, batch_size=4, lr=1e-3, continue_fraction=0.5, seed=0)
+    before = [p.detach().clone() for p in trainer.policy.parameters()]
+    for _ in range(3):
+        trainer.step()
+    assert trainer.skipped == 3 and all(torch.equal(p, q) for p, q in zip(before, trainer.policy.parameters(), strict=True))
+    with pytest.raises(FloatingPointError, match=r"all 3 gradient steps so far were skipped.*--model.n-intermediate"):
+        trainer.validate(lambda p: (-1.0, 1))
+    plant.step = step  # type: ignore[method-assign]
+    trainer.step()  # one step applied: validation goes on
+    assert trainer.validate(lambda p: (-1.0, 1)) == -1.0
+
+
 # ----------------------------------------------------------------------------- runs
 def _cfg(env: str, method: str, **overrides):
     return resolve_config(env, {"method": method, "eval_episodes": 6, **overrides})

@@ -147,7 +147,19 @@ class DPCTrainer:
         return float(total[finite].mean().detach())
 
     def validate(self, score: Callable[[DPCPolicy], tuple[float, int]]) -> float:
-        """Score the policy (``score``: its mean return on the validation draws and the steps played); keep the best."""
+        """Score the policy (``score``: its mean return on the validation draws and the steps played); keep the best.
+
+        Raises :class:`FloatingPointError` when no gradient step so far was applied (every one was skipped for a
+        gradient that was not finite): the policy never changed, so its validation return would only be the
+        untrained policy's.
+        """
+        if self.steps and self.skipped == self.steps:
+            raise FloatingPointError(
+                f"DPC: all {self.steps:,d} gradient steps so far were skipped (in every batch a rollout blew up in the "
+                "scheme, so the gradient was not finite) and the policy never changed: the scheme is too coarse for "
+                "this system and horizon; raise --model.n-intermediate (the scheme's steps per control step) or lower "
+                "--model.horizon"
+            )
         value, steps = score(self.policy)
         value = float(value)
         self.validation_transitions += int(steps)
