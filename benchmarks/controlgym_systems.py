@@ -274,7 +274,7 @@ class ControlGymAllenCahn(_ControlGymPrior):
         return -self.c * u**3
 
 
-#: Burgers's recipes (default and best) in controlgym_burgers.yaml beside this file; Allen-Cahn has its default alone
+#: Burgers's recipes in controlgym_burgers.yaml beside this file; Allen-Cahn has the same default recipe, read from it, alone
 BURGERS_PRESET = Path(__file__).with_name("controlgym_burgers.yaml")
 PRESET: dict[str, Any] = {"recipes": {"default": load_yaml(BURGERS_PRESET.read_text())["recipes"]["default"]}}
 

@@ -217,6 +217,8 @@ def test_dpc_whose_every_gradient_step_was_skipped_stops_at_its_validation_with_
     assert trainer.skipped == 3 and all(torch.equal(p, q) for p, q in zip(before, trainer.policy.parameters(), strict=True))
     with pytest.raises(FloatingPointError, match=r"all 3 gradient steps so far were skipped.*--model.n-intermediate"):
         trainer.validate(lambda p: (-1.0, 1))
+    with pytest.raises(FloatingPointError, match="all 3 gradient steps"):  # as a resumed run checks after its last step
+        trainer.check_applied()
     plant.step = step  # type: ignore[method-assign]
     trainer.step()  # one step applied: validation goes on
     assert trainer.validate(lambda p: (-1.0, 1)) == -1.0

@@ -444,6 +444,8 @@ def test_a_record_s_imported_files_are_judged_by_their_bytes_not_the_folder_they
     }
     record = {"registration": registration, "spec_sha256": spec.sha256, "runs": []}
     assert study_label(spec, record)[0] == "confirmatory"
+    for other in ({}, {"a.py": digest, "b.py": digest}, None, [digest]):  # fewer, more or malformed imports
+        assert study_label(spec, {**record, "registration": {**registration, "imports_sha256": other}})[0] == "exploratory"
     system.write_text("# a user's system, edited after the runs\n")
     assert study_label(spec, record) == (
         "exploratory",

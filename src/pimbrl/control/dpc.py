@@ -128,7 +128,8 @@ class DPCTrainer:
         finite = torch.isfinite(total)
         if not bool(finite.any()):
             raise FloatingPointError(
-                "every DPC rollout blew up in the scheme; lower --model.lr or --model.horizon, or check the prior"
+                "every DPC rollout blew up in the scheme; raise --model.n-intermediate (the scheme's steps per control step), "
+                "lower --model.horizon or --model.lr, or check the prior"
             )
         loss = -total[finite].mean()  # a rollout that blew up is left out of the loss
         self.optimizer.zero_grad(set_to_none=True)
@@ -146,12 +147,12 @@ class DPCTrainer:
         self.scheme_transitions += len(total) * self.horizon
         return float(total[finite].mean().detach())
 
-    def validate(self, score: Callable[[DPCPolicy], tuple[float, int]]) -> float:
-        """Score the policy (``score``: its mean return on the validation draws and the steps played); keep the best.
+    def check_applied(self) -> None:
+        """Raise :class:`FloatingPointError` when steps were taken and every one was skipped (its gradient not finite).
 
-        Raises :class:`FloatingPointError` when no gradient step so far was applied (every one was skipped for a
-        gradient that was not finite): the policy never changed, so its validation return would only be the
-        untrained policy's.
+        The policy then never changed: its validation or test return would only be the untrained policy's. A
+        run that applied some of its steps is not stopped; ``skipped`` (``skipped_steps`` in ``control.json``)
+        counts the others.
         """
         if self.steps and self.skipped == self.steps:
             raise FloatingPointError(
@@ -160,6 +161,13 @@ class DPCTrainer:
                 "this system and horizon; raise --model.n-intermediate (the scheme's steps per control step) or lower "
                 "--model.horizon"
             )
+
+    def validate(self, score: Callable[[DPCPolicy], tuple[float, int]]) -> float:
+        """Score the policy (``score``: its mean return on the validation draws and the steps played); keep the best.
+
+        Raises :class:`FloatingPointError` where no gradient step was applied (:meth:`check_applied`).
+        """
+        self.check_applied()
         value, steps = score(self.policy)
         value = float(value)
         self.validation_transitions += int(steps)

@@ -146,7 +146,8 @@ def study_label(spec: StudySpec, record: dict[str, Any]) -> tuple[str, str]:
     shas = {reg.get("spec_sha256"), record.get("spec_sha256"), spec.sha256, *reg.get("spec_sha256_seen", [])}
     if len(shas) != 1:
         return "exploratory", "the spec changed after its first run started (its SHA-256 differs from the registered one)"
-    if list(reg.get("imports_sha256", {}).values()) != list(imports_sha256(spec).values()):
+    registered_imports = reg.get("imports_sha256") or {}
+    if not isinstance(registered_imports, dict) or list(registered_imports.values()) != list(imports_sha256(spec).values()):
         return "exploratory", "a file the spec imports (a system's code) changed after the first run started"
     if record.get("missing") or record.get("mismatched") or any(not r.get("finished") for r in record.get("runs", [])):
         return "exploratory", "runs are missing, unfinished or of other settings"

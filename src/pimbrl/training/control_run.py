@@ -236,6 +236,7 @@ class ControlRun:
                 self._say(f"step {trainer.steps:,d}: predicted {predicted:.2f}, validation {value:.2f}")
                 self.run_dir.save_checkpoint({"dpc": trainer.state_dict()})
                 self._dpc_state(trainer)
+        trainer.check_applied()  # also for a run resumed after its last step (the loop above then takes none)
         if trainer.best_state is not None:
             policy.load_state_dict(trainer.best_state)
         return policy
