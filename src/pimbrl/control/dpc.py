@@ -26,6 +26,9 @@ from .plant import SchemePlant
 
 __all__ = ["DPCPolicy", "DPCTrainer", "policy_features"]
 
+#: what to change when rollouts blow up in the scheme (both of DPC's errors say it)
+_SCHEME_FIX = "raise --model.n-intermediate (the scheme's steps per control step) or lower --model.horizon"
+
 
 def policy_features(plant: SchemePlant, u: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     """What the policy sees: the system's observation where its physics defines one in torch, else the state.
@@ -128,8 +131,7 @@ class DPCTrainer:
         finite = torch.isfinite(total)
         if not bool(finite.any()):
             raise FloatingPointError(
-                "every DPC rollout blew up in the scheme; raise --model.n-intermediate (the scheme's steps per control step), "
-                "lower --model.horizon or --model.lr, or check the prior"
+                f"every DPC rollout blew up in the scheme; {_SCHEME_FIX}, or lower --model.lr, or check the prior"
             )
         loss = -total[finite].mean()  # a rollout that blew up is left out of the loss
         self.optimizer.zero_grad(set_to_none=True)
@@ -158,8 +160,7 @@ class DPCTrainer:
             raise FloatingPointError(
                 f"DPC: all {self.steps:,d} gradient steps so far were skipped (in every batch a rollout blew up in the "
                 "scheme, so the gradient was not finite) and the policy never changed: the scheme is too coarse for "
-                "this system and horizon; raise --model.n-intermediate (the scheme's steps per control step) or lower "
-                "--model.horizon"
+                f"this system and horizon; {_SCHEME_FIX}"
             )
 
     def validate(self, score: Callable[[DPCPolicy], tuple[float, int]]) -> float:
