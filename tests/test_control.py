@@ -147,6 +147,30 @@ def test_mpc_simulates_nothing_past_the_episodes_end_and_plans_as_if_it_did() ->
     np.testing.assert_allclose(action, long(states, near_end), atol=1e-12)
 
 
+def test_mpc_counts_the_decisions_on_which_the_scheme_blew_up() -> None:
+    """MPC keeps a blown-up row's last finite plan (its action stays finite); the decisions so made are counted."""
+    task = task_of(PENDULUM, {})
+    plant = make_plant(task.physics)
+    step = plant.step
+
+    def blowing_up(u, a, k):  # the first row of every batch blows up in the scheme
+        u_next, r = step(u, a, k)
+        row = torch.ones(len(u), 1, dtype=u.dtype)
+        row[0] = float("nan")
+        return u_next * row, r
+
+    states = task.validation_initial_states(3)
+    plant.step = blowing_up  # type: ignore[method-assign]
+    mpc = GradientMPC(plant, 3, 2, 0.1, 2, 200)
+    result = play(PENDULUM, {}, mpc, states)
+    # row 0 at 199 of the episode's 200 control steps (the last plans one step, whose reward precedes the NaN
+    # state), rows 1 and 2 never
+    assert result.blown_up == mpc.blown_up == 199
+    assert np.all(np.isfinite(result.returns))
+    plant.step = step  # type: ignore[method-assign]
+    assert play(PENDULUM, {}, GradientMPC(plant, 3, 2, 0.1, 2, 200), states).blown_up == 0
+
+
 @pytest.mark.slow
 def test_mpc_with_the_known_equation_beats_the_pendulums_floor_on_validation_states() -> None:
     task = task_of(PENDULUM, {})

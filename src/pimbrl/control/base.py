@@ -32,6 +32,9 @@ class Controller(ABC):
 
     #: scheme/model transitions stepped while acting (MPC's optimisation), summed over every call
     transitions: int = 0
+    #: decisions (one state at one control step) on which the scheme blew up during planning, so that some of
+    #: the plan's optimisation steps were not taken (MPC), summed over every call
+    blown_up: int = 0
 
     def reset(self, batch: int) -> None:  # noqa: B027 - optional hook: a memoryless controller has nothing to clear
         """Start a new batch of ``batch`` episodes."""
@@ -56,6 +59,8 @@ class ControlResult:
     #: states the controller computed actions for (a batched call acts for ended episodes too); default:
     #: ``control_steps``
     acted: int | None = None
+    #: decisions on which the scheme blew up while planning (:attr:`Controller.blown_up`)
+    blown_up: int = 0
 
     @property
     def mean(self) -> float:
@@ -99,7 +104,7 @@ def play(
     base = vec.unwrapped
     task: Task = base.task  # type: ignore[attr-defined]
     vec.reset(seed=seed, options={"initial_state": initial_states})
-    before = controller.transitions
+    before, blown_before = controller.transitions, getattr(controller, "blown_up", 0)  # a duck-typed one may lack it
     controller.reset(n)
     returns = np.zeros(n)
     lengths = np.zeros(n, dtype=np.int64)
@@ -125,4 +130,6 @@ def play(
         alive &= ~(terminated | truncated)
         k += 1
     vec.close()
-    return ControlResult(returns, lengths, spent, steps, controller.transitions - before, acted)
+    return ControlResult(
+        returns, lengths, spent, steps, controller.transitions - before, acted, getattr(controller, "blown_up", 0) - blown_before
+    )

@@ -68,12 +68,14 @@ class GradientMPC(Controller):
         plan = self.plan.clone().requires_grad_(True)
         optimizer = torch.optim.Adam([plan], lr=self.lr)
         steps = self.first_iterations if first else self.iterations
+        hit = torch.zeros(len(states), dtype=torch.bool)  # the rows whose plan lost a step to a blow-up
         for _ in range(steps):
             before = plan.detach().clone()
             planned = self.planned_return(u0, k0, plan)
             # a row on which the scheme blew up gets no step: its gradient is zeroed, and after Adam's step
             # (which would still move it by its momentum) its plan is restored; the other rows are independent
             bad = ~torch.isfinite(planned)
+            hit |= bad
             loss = -torch.where(bad, torch.zeros_like(planned), planned).sum()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -85,6 +87,7 @@ class GradientMPC(Controller):
                 if bad.any():
                     plan[bad] = before[bad]
         self.transitions += steps * self.span(k0) * len(states)
+        self.blown_up += int(hit.sum())
         done = plan.detach()
         self.plan = torch.cat([done[:, 1:], done[:, -1:]], dim=1)  # the warm start of the next step
         return self.plant.physical(done[:, 0]).numpy()

@@ -272,6 +272,7 @@ class ControlRun:
                     "control_steps": result.control_steps,
                     "scheme_transitions": result.scheme_transitions,
                     "acted": result.acted,
+                    "blown_up": result.blown_up,
                 }
             )
             done += len(part)
@@ -287,6 +288,7 @@ class ControlRun:
             sum(c["control_steps"] for c in chunks),
             sum(c["scheme_transitions"] for c in chunks),
             sum(c.get("acted", c["control_steps"]) for c in chunks),
+            sum(c.get("blown_up", 0) for c in chunks),
         )
 
     def _test(self, controller: Controller) -> None:
@@ -312,6 +314,13 @@ class ControlRun:
         self._say(
             f"{self.cfg.eval_protocol} return {result.mean:.3f} over {len(returns)} episodes; {cost:.3f} ms per control step"
         )
+        if result.blown_up:  # MPC kept an earlier plan where the scheme blew up: said even in a quiet run
+            print(
+                f"warning: the scheme blew up while planning {result.blown_up:,} of {result.acted or result.control_steps:,} "
+                "decisions (control.json: blown_up per chunk), whose plans kept their last finite step; give the scheme "
+                "more steps per control step (--model.n-intermediate)",
+                file=sys.stderr,
+            )
 
     def _updates(self) -> int:
         """Gradient steps of the controller's training (DPC), 0 for the others."""
