@@ -175,3 +175,39 @@ def test_the_threshold_rule_reads_the_lowest_chosen_iqm_of_the_steps_hypotheses_
               "  # known-scheme:", "  # mfrl-matched:"))]  # fmt: skip
     assert len(chosen) == 4 and steps == {rule_threshold("t", [fam("a", min(chosen))], {"pimbrl": "a"})}
     assert THRESHOLD_RULE in " ".join(text.split())
+
+
+@pytest.mark.slow
+def test_an_amendment_s_methods_replace_the_first_study_s_and_the_rules_read_the_merged_choices(tmp_path) -> None:
+    """A later tuning study of the same system and budget re-tunes some methods (controlgym Burgers's scheme)."""
+    import dataclasses
+
+    spec = load_spec(PENDING / "tune-burgers.yaml")
+    record = load_record(spec)
+    _, alone = _draft("tune-burgers", tmp_path)
+    mbrl_arms = spec.tuning["mbrl"]
+    amending = dataclasses.replace(spec, name="tune-burgers-mbrl", tuning={"mbrl": mbrl_arms})
+    # the amendment's runs: MBRL's three settings again, the last now far ahead of every arm of the first study
+    runs = [
+        {**r, "final_return": 0.0 if r["arm"] == mbrl_arms[-1] else r["final_return"] - 100.0}
+        for r in record["runs"]
+        if r["arm"] in mbrl_arms
+    ]
+    text = draft_confirmatory(spec, record, None, amendments=[(amending, {**record, "runs": runs})])
+    draft = parse_spec(load_yaml(text), where="d", base=PENDING)
+    arms = {a.name: a for a in draft.arms}
+    assert arms["mbrl"] == dataclasses.replace(spec.arm(mbrl_arms[-1]), name="mbrl")  # the amendment's choice
+    assert {n: a for n, a in arms.items() if n != "mbrl"} == {
+        n: a for n, a in {a.name: a for a in alone.arms}.items() if n != "mbrl"
+    }
+    assert f"# mbrl: {mbrl_arms[-1]} 0 by tune-burgers-mbrl (" in text
+    assert "tune-burgers and tune-burgers-mbrl's choices" in text
+    # the best RL arm by rule is now MBRL (IQM 0 against every other family's below it): H4 names it
+    ids = {h.id: (h.better, h.than) for h in draft.hypotheses}
+    assert ids["H4a"] == ("mpc", "mbrl") and ids["H4b"] == ("dpc", "mbrl")
+    other = dataclasses.replace(amending, overrides={**spec.overrides, "total_steps": 600})
+    with pytest.raises(ConfigError, match="tune-burgers-mbrl cannot amend tune-burgers: it has the overrides"):
+        draft_confirmatory(spec, record, None, amendments=[(other, {**record, "runs": runs})])
+    fewer = dataclasses.replace(amending, tuning={"mbrl": mbrl_arms[:2]})
+    with pytest.raises(ConfigError, match=r"gives each method \(2, 2\) settings x seeds, not \(3, 2\)"):
+        draft_confirmatory(spec, record, None, amendments=[(fewer, {**record, "runs": runs})])

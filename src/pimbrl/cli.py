@@ -579,9 +579,13 @@ def _threshold_arg(text: str) -> float | str:
 
 
 def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
-    """`pimbrl study draft TUNING`: the confirmatory spec its record gives, to --out (never over a file) or stdout."""
+    """`pimbrl study draft TUNING [AMENDMENT...]`: the confirmatory spec the records give, to --out or stdout.
+
+    Never over a file; each amendment's methods replace the first study's (``draft_confirmatory``).
+    """
     from .experiments.draft import draft_confirmatory
     from .experiments.report import load_record
+    from .experiments.spec import load_spec
     from .fileio import create_file
 
     out = Path(args.out) if args.out else None
@@ -589,10 +593,17 @@ def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
         raise FileExistsError(
             f"{out} exists: a registered spec is never rewritten (give another --out, or remove an unregistered draft)"
         )
+    if len(args.specs) > 1 and args.run_dir is not None:
+        raise ValueError("`pimbrl study draft` with amendments reads each study's own record: drop --run-dir")
     record = load_record(spec, root if spec.record is None or spec.record.format == "study" else None)
+    amendments = []
+    for path in args.specs[1:]:
+        amending = load_spec(path)
+        amending_root = _study_run_dir(path, amending.name, None)
+        amendments.append((amending, load_record(amending, amending_root)))
     text = draft_confirmatory(
         spec, record, out, seeds=args.seeds, other_seeds=args.other_seeds, total_steps=args.total_steps,
-        holdout_episodes=args.holdout_episodes, threshold=args.threshold,
+        holdout_episodes=args.holdout_episodes, threshold=args.threshold, amendments=amendments,
     )  # fmt: skip
     if out is None:
         print(text, end="")
@@ -633,9 +644,10 @@ def _cmd_study(args: argparse.Namespace) -> int:
             each_root = _study_run_dir(path, each.name, None)
             _study_status(each, each_root, args.jobs, _study_archive(args, each, each_root))
         return 0
-    if len(args.specs) != 1:
+    if len(args.specs) != 1 and args.action != "draft":
         raise ValueError(
-            f"`pimbrl study {args.action}` takes one spec (several only with status or report --pages), got {len(args.specs)}"
+            f"`pimbrl study {args.action}` takes one spec (several only with status, draft or report --pages), got "
+            f"{len(args.specs)}"
         )
     spec = load_spec(args.specs[0])
     root = _study_run_dir(args.specs[0], spec.name, args.run_dir)
@@ -906,11 +918,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="plan SPEC: list its runs. run SPEC: train what is missing (local processes or Ray) and write its "
         "record. status SPEC: which runs have finished, run or wait, and the compute left (no returns). "
         "report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
-        "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. draft TUNING: the "
-        "confirmatory spec a finished tuning study gives by the rules of docs/confirmatory.md (arms, seeds, "
-        "hypotheses, plan), to review and register. archive SPEC: copy the finished runs' files (no checkpoints) and the "
-        "registration to the study's archive, to commit; `run` copies them back on a fresh machine. Format: "
-        "pimbrl.experiments.spec.",
+        "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. draft TUNING "
+        "[AMENDMENT...]: the confirmatory spec a finished tuning study (and its amendments) gives by the rules of "
+        "docs/confirmatory.md (arms, seeds, hypotheses, plan), to review and register. archive SPEC: copy the "
+        "finished runs' files (no checkpoints) and the registration to the study's archive, to commit; `run` copies "
+        "them back on a fresh machine. Format: pimbrl.experiments.spec.",
     )
     st.add_argument("action", choices=("plan", "run", "status", "report", "draft", "archive"))
     st.add_argument("specs", nargs="+", metavar="SPEC", help="study spec (YAML)")

@@ -15,6 +15,10 @@ its first run):
   against the wrong scheme held fixed) in place of H3 and H4;
 * the compute plan from the tuning runs' wall-clocks (a seed-free controller trains two seeds).
 
+A tuning study may be amended by later ones of the same system and budget (``pimbrl study draft TUNING
+AMENDMENT...``): each amendment's methods replace the first study's of the same name (controlgym Burgers's
+scheme methods, tuned again at a stable resolution), and the rules' arms are chosen over the merged choices.
+
 Nothing is chosen here that the protocol does not choose: a setting the draft cannot derive is an error,
 and the reviewer edits the text before it is committed, never after.
 """
@@ -22,13 +26,14 @@ and the reviewer edits the text before it is committed, never after.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, load_yaml
 from ..training.methods import CONTROL_METHODS
-from .report import json_line, study_report
+from .report import json_line, rule_choices, study_report
 from .spec import StudySpec, parse_spec
 from .stats import MIN_RUNS_FOR_VERDICT
 
@@ -40,12 +45,18 @@ FIRST_SEED = 100
 
 @dataclass(frozen=True)
 class _Family:
-    """One tuned method family: its chosen arm, that arm's method and validation IQM, all candidates' IQMs."""
+    """One tuned method family: its chosen arm, that arm's method and validation IQM, all candidates' IQMs.
+
+    ``source``: the tuning study that chose it; ``summary``: the chosen arm's statistics there (its wall-clock
+    and inference cost make the plan).
+    """
 
     name: str
     arm: Any
     iqm: float
     candidates: dict[str, float]
+    source: str = ""
+    summary: dict[str, Any] = field(default_factory=dict)
 
     @property
     def method(self) -> str:
@@ -62,6 +73,7 @@ def draft_confirmatory(
     holdout_episodes: int = 100,
     total_steps: int | None = None,
     threshold: float | str | None = None,
+    amendments: Sequence[tuple[StudySpec, dict[str, Any]]] = (),
 ) -> str:
     """The YAML text of the confirmatory spec drafted from tuning study ``spec`` and its ``record``.
 
@@ -79,37 +91,26 @@ def draft_confirmatory(
         threshold: the return of the steps-to-threshold hypotheses (H1a, H3), where the system's recipe
             sets none (chosen on earlier or validation curves, never on the holdout pool); ``"rule"``: the
             one :func:`rule_threshold` derives from the tuning record (docs/confirmatory.md's rule).
+        amendments: later tuning studies of the same system, budget and overrides, with their records: each
+            one's methods replace ``spec``'s of the same name (its budget of settings x seeds must be the same).
     """
     if seeds < 1 or (other_seeds is not None and not 1 <= other_seeds <= seeds) or holdout_episodes < 1:
         raise ConfigError(
             f"draft: seeds {seeds}, other seeds {other_seeds}, holdout episodes {holdout_episodes}: each must be "
             "at least 1, and the other arms' seeds at most the main arms'"
         )
-    if not spec.tuning:
-        raise ConfigError(f"{spec.name} is not a tuning study (no `tuning:`): a confirmatory draft needs each method's choice")
-    if len(spec.systems) != 1 or spec.grid:
-        raise ConfigError(f"{spec.name} tunes {len(spec.systems)} systems or a grid: a draft takes one system and no grid")
-    report = study_report(spec, record)
-    groups = report.stats["groups"]
-    if len(groups) != 1:
-        raise ConfigError(f"{spec.name}: its record has {len(groups)} groups of finished runs, a draft needs exactly one")
-    group = next(iter(groups.values()))
-    missing = [f for f, c in group.get("tuning", {}).items() if not c["chosen"]]
-    if missing or "tuning_rules" not in group:
-        raise ConfigError(
-            f"{spec.name}: no choice yet for {', '.join(missing) or 'every method'} (runs missing or unfinished): "
-            f"finish it first (`pimbrl study status`)"
-        )
-    families = [
-        _Family(name, spec.arm(c["chosen"]), float(c["iqm"][c["chosen"]]), {a: float(v) for a, v in c["iqm"].items()})
-        for name, c in group["tuning"].items()
-    ]
-    rules: dict[str, str | None] = group["tuning_rules"]
+    families = _families(spec, record)
+    tuned = _tuning_run_config(spec)  # the budget and threshold the tuning runs had
+    for amending, amending_record in amendments:
+        _check_amendment(spec, tuned, amending)
+        replaced = {f.name: f for f in _families(amending, amending_record)}
+        families = [replaced.pop(f.name, f) for f in families] + list(replaced.values())
+    rules = rule_choices({f.name: f.method for f in families}, {f.name: f.iqm for f in families})
+    sources = " and ".join([spec.name, *(a.name for a, _ in amendments)])
     system = spec.systems[0]
     thresholds = [float(t) for t in (record.get("thresholds") or {}).get(system) or spec.thresholds]
     partial = "model.prior" in spec.overrides
     arms = _protocol_arms(spec.name, families, rules, partial)
-    tuned = _tuning_run_config(spec)  # the budget and threshold the tuning runs had
     by_rule = threshold == "rule"
     if by_rule:
         if tuned.threshold is not None:
@@ -148,18 +149,21 @@ def draft_confirmatory(
         f"name: {name}",
         "kind: confirmatory",
         "question: >-",
-        *_wrapped(_question(spec, system, families, hypotheses, holdout_episodes), "  "),
+        *_wrapped(_question(spec, system, families, hypotheses, holdout_episodes, sources), "  "),
         f"systems: [{spec.systems[0]}]",
         f"preset: {spec.preset or 'default'}",
         f"seeds: {json_line(seed_list)}",
     ]
     if spec.imports:
         lines.append(f"imports: {json_line([_relative(i, folder) for i in spec.imports])}")
-    lines += ["methods:", f"  # {spec.name}'s choices: the highest IQM of the {spec.outcome} validation return over its seeds"]
+    lines += ["methods:", f"  # {sources}'s choices: the highest IQM of the {spec.outcome} validation return over its seeds"]
     for fam in families:
         others = ", ".join(f"{a} {v:.4g}" for a, v in fam.candidates.items() if a != fam.arm.name)
         tags = [what for what, f in rules.items() if f == fam.name]
-        lines.append(f"  # {fam.name}: {fam.arm.name} {fam.iqm:.4g} ({others})" + (f"; the {' and '.join(tags)}" if tags else ""))
+        source = "" if fam.source == spec.name else f" by {fam.source}"
+        lines.append(
+            f"  # {fam.name}: {fam.arm.name} {fam.iqm:.4g}{source} ({others})" + (f"; the {' and '.join(tags)}" if tags else "")
+        )
         entry: dict[str, Any] = {"method": fam.method}
         if fam.arm.match_updates:
             entry["match_updates"] = True
@@ -190,10 +194,64 @@ def draft_confirmatory(
         record_path = f"../results/{name}.json"
     lines.append(f"record: {{path: {record_path}, format: study}}")
     draft = _parsed(lines, where, folder)  # a draft that does not read is a bug
-    plan = _plan(spec, group, draft, families, total_steps, tuned_steps, holdout_episodes)
+    plan = _plan(sources, draft, families, total_steps, tuned_steps, holdout_episodes)
     lines[-1:-1] = ["plan: >-", *_wrapped(plan, "  ")]
     _parsed(lines, where, folder)
     return "\n".join(lines) + "\n"
+
+
+def _families(spec: StudySpec, record: dict[str, Any]) -> list[_Family]:
+    """Each method's choice in tuning study ``spec`` (every candidate finished), from its report."""
+    if not spec.tuning:
+        raise ConfigError(f"{spec.name} is not a tuning study (no `tuning:`): a confirmatory draft needs each method's choice")
+    if len(spec.systems) != 1 or spec.grid:
+        raise ConfigError(f"{spec.name} tunes {len(spec.systems)} systems or a grid: a draft takes one system and no grid")
+    groups = study_report(spec, record).stats["groups"]
+    if len(groups) != 1:
+        raise ConfigError(f"{spec.name}: its record has {len(groups)} groups of finished runs, a draft needs exactly one")
+    group = next(iter(groups.values()))
+    missing = [f for f, c in group.get("tuning", {}).items() if not c["chosen"]]
+    if missing or "tuning_rules" not in group:
+        raise ConfigError(
+            f"{spec.name}: no choice yet for {', '.join(missing) or 'every method'} (runs missing or unfinished): "
+            f"finish it first (`pimbrl study status`)"
+        )
+    families = [
+        _Family(
+            name,
+            spec.arm(c["chosen"]),
+            float(c["iqm"][c["chosen"]]),
+            {a: float(v) for a, v in c["iqm"].items()},
+            spec.name,
+            group["arms"][c["chosen"]],
+        )
+        for name, c in group["tuning"].items()
+    ]
+    return families
+
+
+def _check_amendment(spec: StudySpec, tuned: Any, amending: StudySpec) -> None:
+    """A clear error where ``amending`` is not a tuning study of ``spec``'s system, budget and overrides."""
+
+    def budget(s: StudySpec) -> tuple[int, int]:
+        first = next(iter(s.tuning.values()))
+        return len(first), len(s.seeds_of(first[0]))
+
+    theirs = _tuning_run_config(amending) if amending.tuning else None
+    why = (
+        "tunes nothing (no `tuning:`)" if theirs is None
+        else f"tunes {amending.systems}, not {spec.systems}" if amending.systems != spec.systems
+        else f"has the overrides {json_line(amending.overrides)}, not {json_line(spec.overrides)}"
+        if amending.overrides != spec.overrides
+        else f"runs {theirs.total_steps:,d} real steps, not {tuned.total_steps:,d}" if theirs.total_steps != tuned.total_steps
+        else f"gives each method {budget(amending)} settings x seeds, not {budget(spec)}" if budget(amending) != budget(spec)
+        else None
+    )  # fmt: skip
+    if why is not None:
+        raise ConfigError(
+            f"{amending.name} cannot amend {spec.name}: it {why}; an amendment re-tunes some methods of the same "
+            "system with the same budget"
+        )
 
 
 #: how ``--threshold rule`` derives the steps-to-threshold return (stated before any study used it)
@@ -306,20 +364,21 @@ def _hypotheses(
     return out
 
 
-def _question(spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int) -> str:
+def _question(
+    spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int, sources: str
+) -> str:
     first = spec.tuning[families[0].name]
     wrong = f" with the prior {json_line(spec.overrides['model.prior'])}" if "model.prior" in spec.overrides else ""
     claims = "; ".join(f"{hid}: {h['claim']}" for hid, h in hypotheses.items())
     return (
-        f"On {system}{wrong}, with each method's setting chosen on the validation draws by {spec.name} (equal "
+        f"On {system}{wrong}, with each method's setting chosen on the validation draws by {sources} (equal "
         f"budgets: {len(first)} settings x {len(spec.seeds_of(first[0]))} seeds) and every run judged once on the "
         f"first {episodes} states of the holdout pool, which of these claims hold? {claims}."
     )
 
 
 def _plan(
-    spec: StudySpec,
-    group: dict[str, Any],
+    sources: str,
     draft: StudySpec,
     families: list[_Family],
     total_steps: int | None,
@@ -345,7 +404,7 @@ def _plan(
         own = [r for r in runs if r.arm == fam.name]
         trained = min(len(own), 2) if own and seed_free(own[0]) else len(own)
         control = bool(own) and own[0].config.control  # a controller's cost follows its horizon, not the budget
-        summary = group["arms"][fam.arm.name]
+        summary = fam.summary
         wall = (summary.get("wall_s") or 0.0) / 60 * (1.0 if control else scale)
         system = get_system(own[0].system) if own else None
         if system is not None and summary.get("inference_s_per_step"):
@@ -353,7 +412,7 @@ def _plan(
         parts.append(f"{fam.name} {wall:.1f}")
         minutes += trained * wall
     return (
-        f"{len(runs)} runs ({len(families)} arms), minutes per run from {spec.name}'s runs (one of two processes"
+        f"{len(runs)} runs ({len(families)} arms), minutes per run from {sources}'s runs (one of two processes"
         f"{scaled}), with {episodes} holdout episodes each at the arm's inference cost per control step: "
         f"{', '.join(parts)}; a seed-free controller trains two "
         f"seeds: about {minutes:,.0f} CPU-minutes, {minutes / 2:,.0f} minutes with two processes (--jobs 2); "
