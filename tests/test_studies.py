@@ -965,7 +965,7 @@ def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys
     assert main(["study", "status", str(a), str(b), "--run-dir", "x"]) == 2
     assert "own directory and archive: drop --run-dir, --archive" in capsys.readouterr().err
     assert main(["study", "plan", str(a), str(b)]) == 2
-    assert "several only with status or report --pages" in capsys.readouterr().err
+    assert "several only with status, draft or report --pages" in capsys.readouterr().err
 
 
 @pytest.mark.slow
