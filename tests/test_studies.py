@@ -6,6 +6,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -889,6 +890,22 @@ def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str, pr
 _CONFIRMATORY_SPECS = sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "confirmatory").glob("confirmatory-*.yaml"))
 
 
+def _tuning_studies(path: Path) -> list[str]:
+    """The tuning studies a registered spec's arms come from: those its draft's comment names (tune-X, then the
+    studies amending it, `pimbrl study draft TUNING AMENDMENT...`), else tune-X alone (specs drafted by hand)."""
+    found = re.search(r"^  # (.+)'s choices: the highest IQM", path.read_text(), re.MULTILINE)
+    return found.group(1).split(" and ") if found else [path.stem.replace("confirmatory-", "tune-", 1)]
+
+
+def test_a_registered_spec_names_its_tuning_studies_as_its_draft_wrote_them(tmp_path) -> None:
+    spec = tmp_path / "confirmatory-x.yaml"
+    spec.write_text("methods:\n  # tune-x and tune-x-scheme's choices: the highest IQM of the final validation return\n")
+    assert _tuning_studies(spec) == ["tune-x", "tune-x-scheme"]
+    spec.write_text("methods:\n  mfrl: {method: mfrl}\n")
+    assert _tuning_studies(spec) == ["tune-x"]
+    assert _tuning_studies(_CONFIRMATORY_SPECS[0]) == [_CONFIRMATORY_SPECS[0].stem.replace("confirmatory-", "tune-", 1)]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("path", _CONFIRMATORY_SPECS, ids=[p.stem for p in _CONFIRMATORY_SPECS])
 def test_every_registered_arm_is_its_tuning_report_s_entry(path: Path) -> None:
@@ -898,11 +915,17 @@ def test_every_registered_arm_is_its_tuning_report_s_entry(path: Path) -> None:
     from pimbrl.config import load_yaml
 
     repo = Path(__file__).resolve().parents[1]
-    tuning = repo / "benchmarks" / "pending" / path.name.replace("confirmatory-", "tune-", 1)
-    assert tuning.is_file(), f"{path.name} has no tuning study {tuning.name}"
-    spec = dataclasses.replace(load_spec(tuning), reps=200)
-    report = study_report(spec, load_record(spec))
-    entries = load_yaml(report.markdown.split("```yaml\n")[1].split("```")[0])
+    names = _tuning_studies(path)
+    assert names[0] == path.stem.replace("confirmatory-", "tune-", 1), f"{path.name} names {names[0]} first"
+    entries: dict = {}
+    specs = []
+    for name in names:  # tune-X's entries, then each amendment's for the methods it tuned again
+        tuning = repo / "benchmarks" / "pending" / f"{name}.yaml"
+        assert tuning.is_file(), f"{path.name} has no tuning study {tuning.name}"
+        specs.append(dataclasses.replace(load_spec(tuning), reps=200))
+        report = study_report(specs[-1], load_record(specs[-1]))
+        entries.update(load_yaml(report.markdown.split("```yaml\n")[1].split("```")[0]))
+    spec = specs[0]  # the study whose overrides the confirmatory spec keeps (an amendment has the same)
     confirmatory = load_spec(path)
     assert {arm.name for arm in confirmatory.arms} <= set(entries), path.name
     for key, value in spec.overrides.items():  # the system as tuned (a wrong prior included), judged on holdout
