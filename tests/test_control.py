@@ -109,6 +109,18 @@ def test_the_gain_is_tuned_on_validation_draws_never_on_test_states(monkeypatch)
 
 
 # ----------------------------------------------------------------------------- MPC
+def _first_row_blows_up(step):
+    """``step`` (a plant's) with the first row of every batch blown up: its next state NaN, its reward kept."""
+
+    def blowing_up(u, a, k):
+        u_next, r = step(u, a, k)
+        row = torch.ones(len(u), 1, dtype=u.dtype)
+        row[0] = float("nan")
+        return u_next * row, r
+
+    return blowing_up
+
+
 @pytest.mark.slow
 def test_mpc_plans_each_state_independently_of_its_batch() -> None:
     task = task_of(PENDULUM, {})
@@ -152,13 +164,7 @@ def test_mpc_counts_the_decisions_on_which_the_scheme_blew_up() -> None:
     task = task_of(PENDULUM, {})
     plant = make_plant(task.physics)
     step = plant.step
-
-    def blowing_up(u, a, k):  # the first row of every batch blows up in the scheme
-        u_next, r = step(u, a, k)
-        row = torch.ones(len(u), 1, dtype=u.dtype)
-        row[0] = float("nan")
-        return u_next * row, r
-
+    blowing_up = _first_row_blows_up(step)
     states = task.validation_initial_states(3)
     plant.step = blowing_up  # type: ignore[method-assign]
     mpc = GradientMPC(plant, 3, 2, 0.1, 2, 200)
@@ -226,13 +232,7 @@ def test_dpc_whose_every_gradient_step_was_skipped_stops_at_its_validation_with_
     task = task_of(BURGERS, {})
     plant = make_plant(task.physics)
     step = plant.step
-
-    def blowing_up(u, a, k):  # the first row of every batch blows up in the scheme
-        u_next, r = step(u, a, k)
-        row = torch.ones(len(u), 1, dtype=u.dtype)
-        row[0] = float("nan")
-        return u_next * row, r
-
+    blowing_up = _first_row_blows_up(step)
     plant.step = blowing_up  # type: ignore[method-assign]
     trainer = DPCTrainer(DPCPolicy(plant, (16,), seed=0), task, horizon=3, batch_size=4, lr=1e-3, continue_fraction=0.5, seed=0)
     before = [p.detach().clone() for p in trainer.policy.parameters()]

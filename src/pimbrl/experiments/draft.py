@@ -102,8 +102,8 @@ def draft_confirmatory(
     families = _families(spec, record)
     tuned = _tuning_run_config(spec)  # the budget and threshold the tuning runs had
     for amending, amending_record in amendments:
+        replaced = {f.name: f for f in _families(amending, amending_record)}  # a tuning study of one system
         _check_amendment(spec, tuned, amending)
-        replaced = {f.name: f for f in _families(amending, amending_record)}
         families = [replaced.pop(f.name, f) for f in families] + list(replaced.values())
     rules = rule_choices({f.name: f.method for f in families}, {f.name: f.iqm for f in families})
     sources = " and ".join([spec.name, *(a.name for a, _ in amendments)])
@@ -230,23 +230,24 @@ def _families(spec: StudySpec, record: dict[str, Any]) -> list[_Family]:
     return families
 
 
+def _budget(spec: StudySpec) -> tuple[int, int]:
+    """The tuning budget of ``spec``: settings and seeds per method (its first method's; the spec checks they agree)."""
+    first = next(iter(spec.tuning.values()))
+    return len(first), len(spec.seeds_of(first[0]))
+
+
 def _check_amendment(spec: StudySpec, tuned: Any, amending: StudySpec) -> None:
-    """A clear error where ``amending`` is not a tuning study of ``spec``'s system, budget and overrides."""
-
-    def budget(s: StudySpec) -> tuple[int, int]:
-        first = next(iter(s.tuning.values()))
-        return len(first), len(s.seeds_of(first[0]))
-
-    theirs = _tuning_run_config(amending) if amending.tuning else None
-    why = (
-        "tunes nothing (no `tuning:`)" if theirs is None
-        else f"tunes {amending.systems}, not {spec.systems}" if amending.systems != spec.systems
-        else f"has the overrides {json_line(amending.overrides)}, not {json_line(spec.overrides)}"
-        if amending.overrides != spec.overrides
-        else f"runs {theirs.total_steps:,d} real steps, not {tuned.total_steps:,d}" if theirs.total_steps != tuned.total_steps
-        else f"gives each method {budget(amending)} settings x seeds, not {budget(spec)}" if budget(amending) != budget(spec)
-        else None
-    )  # fmt: skip
+    """A clear error where tuning study ``amending`` has not ``spec``'s system, overrides, real steps and budget."""
+    theirs = _tuning_run_config(amending)
+    why = None
+    if amending.systems != spec.systems:
+        why = f"tunes {amending.systems}, not {spec.systems}"
+    elif amending.overrides != spec.overrides:
+        why = f"has the overrides {json_line(amending.overrides)}, not {json_line(spec.overrides)}"
+    elif theirs.total_steps != tuned.total_steps:
+        why = f"runs {theirs.total_steps:,d} real steps, not {tuned.total_steps:,d}"
+    elif _budget(amending) != _budget(spec):
+        why = f"gives each method {_budget(amending)} settings x seeds, not {_budget(spec)}"
     if why is not None:
         raise ConfigError(
             f"{amending.name} cannot amend {spec.name}: it {why}; an amendment re-tunes some methods of the same "
@@ -367,12 +368,12 @@ def _hypotheses(
 def _question(
     spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int, sources: str
 ) -> str:
-    first = spec.tuning[families[0].name]
+    settings, seeds = _budget(spec)
     wrong = f" with the prior {json_line(spec.overrides['model.prior'])}" if "model.prior" in spec.overrides else ""
     claims = "; ".join(f"{hid}: {h['claim']}" for hid, h in hypotheses.items())
     return (
         f"On {system}{wrong}, with each method's setting chosen on the validation draws by {sources} (equal "
-        f"budgets: {len(first)} settings x {len(spec.seeds_of(first[0]))} seeds) and every run judged once on the "
+        f"budgets: {settings} settings x {seeds} seeds) and every run judged once on the "
         f"first {episodes} states of the holdout pool, which of these claims hold? {claims}."
     )
 
