@@ -230,12 +230,6 @@ def _families(spec: StudySpec, record: dict[str, Any]) -> list[_Family]:
     return families
 
 
-def _budget(spec: StudySpec) -> tuple[int, int]:
-    """The tuning budget of ``spec``: settings and seeds per method (its first method's; the spec checks they agree)."""
-    first = next(iter(spec.tuning.values()))
-    return len(first), len(spec.seeds_of(first[0]))
-
-
 def _check_amendment(spec: StudySpec, tuned: Any, amending: StudySpec) -> None:
     """A clear error where tuning study ``amending`` has not ``spec``'s system, overrides, real steps and budget."""
     theirs = _tuning_run_config(amending)
@@ -246,8 +240,8 @@ def _check_amendment(spec: StudySpec, tuned: Any, amending: StudySpec) -> None:
         why = f"has the overrides {json_line(amending.overrides)}, not {json_line(spec.overrides)}"
     elif theirs.total_steps != tuned.total_steps:
         why = f"runs {theirs.total_steps:,d} real steps, not {tuned.total_steps:,d}"
-    elif _budget(amending) != _budget(spec):
-        why = f"gives each method {_budget(amending)} settings x seeds, not {_budget(spec)}"
+    elif amending.tuning_budget != spec.tuning_budget:
+        why = f"gives each method {amending.tuning_budget} settings x seeds, not {spec.tuning_budget}"
     if why is not None:
         raise ConfigError(
             f"{amending.name} cannot amend {spec.name}: it {why}; an amendment re-tunes some methods of the same "
@@ -368,7 +362,7 @@ def _hypotheses(
 def _question(
     spec: StudySpec, system: str, families: list[_Family], hypotheses: dict[str, Any], episodes: int, sources: str
 ) -> str:
-    settings, seeds = _budget(spec)
+    settings, seeds = spec.tuning_budget
     wrong = f" with the prior {json_line(spec.overrides['model.prior'])}" if "model.prior" in spec.overrides else ""
     claims = "; ".join(f"{hid}: {h['claim']}" for hid, h in hypotheses.items())
     return (

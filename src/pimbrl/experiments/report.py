@@ -402,9 +402,9 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any], rules: dict[str, str 
 
     ``rules``: :func:`_rule_choices` of ``chosen`` once every method has its choice, else ``None``.
     """
-    first = next(iter(spec.tuning.values()))
+    candidates, seeds = spec.tuning_budget
     lines = [
-        f"Tuning ({len(first)} candidates x {len(spec.seeds_of(first[0]))} seeds per method, chosen by the IQM of the "
+        f"Tuning ({candidates} candidates x {seeds} seeds per method, chosen by the IQM of the "
         f"{spec.outcome} return on the validation draws; no test state was read):",
         "",
         "| method | candidates (IQM) | chosen |",

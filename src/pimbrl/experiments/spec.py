@@ -212,6 +212,17 @@ class StudySpec:
         raise KeyError(name)
 
     @property
+    def tuning_budget(self) -> tuple[int, int]:
+        """A tuning study's budget per method: its candidates and their seeds; ``(0, 0)`` where it tunes nothing.
+
+        Every method has the same (checked when the spec is read).
+        """
+        if not self.tuning:
+            return 0, 0
+        first = next(iter(self.tuning.values()))
+        return len(first), len(self.seeds_of(first[0]))
+
+    @property
     def compact(self) -> bool:
         """Whether runs live at ``ROOT/ARM/seedK`` (one system, no grid) rather than the full layout."""
         if self.layout == "auto":
