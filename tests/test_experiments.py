@@ -1,4 +1,4 @@
-"""Sweeps (in-process and on Ray), and every figure command on tiny run directories."""
+"""Sweeps (in-process and on Ray, with a study on the same Ray instance), and every figure command on tiny run directories."""
 
 from __future__ import annotations
 
@@ -9,10 +9,14 @@ import pytest
 
 from pimbrl.cli import main
 from pimbrl.config import ConfigError
+from pimbrl.experiments.engine import run_study
+from pimbrl.experiments.spec import load_spec
 from pimbrl.experiments.sweep import load_sweep, run_sweep
 from pimbrl.training.config import get_setting
 
 from .test_dyna import DYNA_SMOKE, SMALL_MODEL
+from .test_studies import TINY as STUDY_TINY
+from .test_studies import _spec as _study_spec
 from .test_training import SMOKE, TINY
 
 TRIAL_ARGS = ["--steps", "200", "--warmup-steps", "100", "--update-after", "100", "--eval-every", "100", "--eval-episodes", "2",
@@ -39,21 +43,41 @@ def _results(path) -> list[dict[str, str]]:
 
 
 @pytest.mark.slow
-def test_sweep_in_process_and_on_ray_give_the_same_table(tmp_path, capsys) -> None:
-    pytest.importorskip("ray")
-    spec = _sweep_file(tmp_path)
-    assert main(["sweep", spec, "--run-dir", str(tmp_path / "local"), "--no-ray"]) == 0
-    assert main(["sweep", spec, "--run-dir", str(tmp_path / "ray"), "--cpus", "2"]) == 0
-    local, ray = _results(tmp_path / "local"), _results(tmp_path / "ray")
-    assert len(local) == 2 and local == ray
-    assert {r["setting"] for r in local} == {"agent.gamma=0.9", "agent.gamma=0.99"}
-    assert (tmp_path / "ray" / "curves.png").stat().st_size > 10_000
-    # a finished sweep does no work on a second run
+def test_studies_and_sweeps_on_ray_give_what_local_processes_give(tmp_path, capsys) -> None:
+    """A study's runs (a model-free and a model-based arm) and a sweep's table, on Ray and as local processes.
+
+    Both share one Ray instance: its start and its workers' imports are most of this test's time (minutes on
+    a loaded machine), and a second instance would double them.
+    """
+    ray = pytest.importorskip("ray")
+    from pimbrl.experiments.watchdog import watch_descendants
+
+    spec = load_spec(_study_spec(tmp_path, methods=["mfrl", "mbrl"], overrides=STUDY_TINY))
+    local = run_study(spec, tmp_path / "local", status=False, log=lambda m: None)
+    sweep = _sweep_file(tmp_path)
+    assert main(["sweep", sweep, "--run-dir", str(tmp_path / "sweep-local"), "--no-ray"]) == 0
+    watchdog = watch_descendants()  # Ray's helpers end with this process, also a killed one
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        on_ray = run_study(spec, tmp_path / "ray", backend="ray", jobs=2, status=False, log=lambda m: None)
+        assert main(["sweep", sweep, "--run-dir", str(tmp_path / "sweep-ray"), "--cpus", "2"]) == 0
+    finally:
+        ray.shutdown()
+        watchdog.stop()
+    assert not local["failed"] and not on_ray["failed"] and len(local["runs"]) == len(on_ray["runs"]) == 2
+    for a, b in zip(local["runs"], on_ray["runs"]):
+        assert (a["arm"], a["seed"]) == (b["arm"], b["seed"])
+        assert a["curve"]["return_mean"] == b["curve"]["return_mean"] and a["updates"] == b["updates"]
+    table, ray_table = _results(tmp_path / "sweep-local"), _results(tmp_path / "sweep-ray")
+    assert len(table) == 2 and table == ray_table
+    assert {r["setting"] for r in table} == {"agent.gamma=0.9", "agent.gamma=0.99"}
+    assert (tmp_path / "sweep-ray" / "curves.png").stat().st_size > 10_000
+    # a finished sweep does no work on a second run (and starts no Ray instance)
     capsys.readouterr()
-    assert main(["sweep", spec, "--run-dir", str(tmp_path / "ray")]) == 0
+    assert main(["sweep", sweep, "--run-dir", str(tmp_path / "sweep-ray")]) == 0
     out = capsys.readouterr().out
     assert "2 runs, 2 finished, 0 to run" in out and "0 run now" in out
-    assert _results(tmp_path / "ray") == ray
+    assert _results(tmp_path / "sweep-ray") == ray_table and not ray.is_initialized()
 
 
 @pytest.mark.slow

@@ -172,18 +172,6 @@ def test_a_run_directory_of_another_study_is_refused(tmp_path) -> None:
         start_study(load_spec(_spec(tmp_path, name="b.yaml")), tmp_path / "root")
 
 
-@pytest.mark.slow
-def test_local_processes_and_ray_give_the_same_runs(tmp_path) -> None:
-    pytest.importorskip("ray")
-    spec = load_spec(_spec(tmp_path, methods=["mfrl", "mbrl"], overrides=TINY))
-    local = run_study(spec, tmp_path / "local", status=False, log=lambda m: None)
-    ray = run_study(spec, tmp_path / "ray", backend="ray", jobs=2, status=False, log=lambda m: None)
-    assert not local["failed"] and not ray["failed"] and len(local["runs"]) == len(ray["runs"]) == 2
-    for a, b in zip(local["runs"], ray["runs"]):
-        assert (a["arm"], a["seed"]) == (b["arm"], b["seed"])
-        assert a["curve"]["return_mean"] == b["curve"]["return_mean"] and a["updates"] == b["updates"]
-
-
 def test_the_watchdog_ends_a_killed_drivers_helpers(tmp_path) -> None:
     """Ray's helpers live in sessions of their own; SIGKILL on the driver must not leave them running."""
     pid_file = tmp_path / "helper.pid"
