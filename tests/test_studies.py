@@ -976,7 +976,72 @@ def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys
     assert main(["study", "status", str(a), str(b), "--run-dir", "x"]) == 2
     assert "own directory and archive: drop --run-dir, --archive" in capsys.readouterr().err
     assert main(["study", "plan", str(a), str(b)]) == 2
-    assert "several only with status, draft or report --pages" in capsys.readouterr().err
+    assert "several only with run, status, draft or report --pages" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_queue_starts_the_next_study_in_a_process_the_last_one_leaves_free(tmp_path, capsys, monkeypatch) -> None:
+    """`pimbrl study run A B --jobs 2`: B's run starts beside A's last, each study gets its own record, and the runs
+    are the ones each study makes alone."""
+    from pimbrl.experiments.engine import QueuedStudy, run_studies
+
+    a = load_spec(_spec(tmp_path, name="a.yaml"))
+    b = load_spec(_spec(tmp_path, name="b.yaml", seeds=[1]))
+    lines: list[str] = []
+    records = run_studies(
+        [QueuedStudy(a, tmp_path / "qa"), QueuedStudy(b, tmp_path / "qb")], jobs=2, status=False, log=lines.append
+    )
+    starts = [i for i, line in enumerate(lines) if line.startswith("start ")]
+    first_done = next(i for i, line in enumerate(lines) if line.startswith("done "))
+    assert len(starts) == 2 and max(starts) < first_done  # both at once: a's one run left a process to b
+    assert "/qa/" in lines[starts[0]] and "/qb/" in lines[starts[1]]
+    assert [r["study"] for r in records] == ["a", "b"] and all(not r["failed"] for r in records)
+    assert json.loads((tmp_path / "qa" / RECORD_FILE).read_text())["runs"][0]["seed"] == 0
+    alone = run_study(b, tmp_path / "b-alone", status=False, log=lambda m: None)
+    assert alone["runs"][0]["curve"]["return_mean"] == records[1]["runs"][0]["curve"]["return_mean"]
+    # the CLI: a queue of finished studies trains nothing and writes both records again
+    monkeypatch.chdir(tmp_path)
+    for name in ("a", "b"):
+        (tmp_path / "runs").mkdir(exist_ok=True)
+        os.replace(tmp_path / f"q{name}", tmp_path / "runs" / name)
+    assert main(["study", "run", "a.yaml", "b.yaml", "--jobs", "2", "--no-archive"]) == 0
+    out = capsys.readouterr().out
+    assert "study a: 1 runs, 1 finished, 0 to run" in out and "study b: 1 runs, 1 finished, 0 to run" in out
+    assert "study a: 1 runs recorded in" in out and "study b: 1 runs recorded in" in out
+
+
+@pytest.mark.slow
+def test_a_failed_run_is_its_own_study_s_and_the_queue_goes_on(tmp_path) -> None:
+    from pimbrl.experiments.engine import QueuedStudy, run_studies
+
+    (tmp_path / "fragile.py").write_text(
+        "from pathlib import Path\nif Path(__file__).with_suffix('.fail').exists():\n    raise SystemExit('fragile: told to fail')\n"
+    )
+    a = load_spec(_spec(tmp_path, name="a.yaml", imports=["fragile.py"], seeds=[0, 1]))
+    b = load_spec(_spec(tmp_path, name="b.yaml"))
+    queue = [QueuedStudy(a, tmp_path / "qa"), QueuedStudy(b, tmp_path / "qb")]  # fragile.py imported here, unharmed
+    (tmp_path / "fragile.fail").write_text("")  # each child of a imports it again: each fails
+    lines: list[str] = []
+    records = run_studies(queue, jobs=2, status=False, log=lines.append)
+    assert sorted(records[0]["failed"]) == ["mfrl/seed0", "mfrl/seed1"]  # in its record, relative to its directory
+    assert not records[1]["failed"] and records[1]["runs"][0]["final_return"] is not None
+    assert sum(line.startswith("FAILED ") and "fragile: told to fail" in line for line in lines) == 2
+
+
+def test_a_queue_is_checked_whole_before_any_run_starts(tmp_path, capsys, monkeypatch) -> None:
+    from pimbrl.experiments.engine import QueuedStudy, run_studies
+
+    a, b = load_spec(_spec(tmp_path, name="a.yaml")), load_spec(_spec(tmp_path, name="b.yaml"))
+    with pytest.raises(ConfigError, match="two studies of the queue share a run directory"):
+        run_studies([QueuedStudy(a, tmp_path / "x"), QueuedStudy(b, tmp_path / "x")], log=lambda m: None)
+    start_study(load_spec(_spec(tmp_path, name="c.yaml")), tmp_path / "held")  # b's directory holds another study
+    with pytest.raises(ConfigError, match="holds the study 'c', not 'b'"):
+        run_studies([QueuedStudy(a, tmp_path / "qa"), QueuedStudy(b, tmp_path / "held")], log=lambda m: None)
+    assert not any(p.name == "config.request.json" for p in (tmp_path / "qa").rglob("*"))  # a trained nothing
+    assert not (tmp_path / "qa" / RECORD_FILE).exists()
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "run", "a.yaml", "b.yaml", "--run-dir", "x"]) == 2
+    assert "with several specs runs each in its own directory with its own archive: drop --run-dir" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ import os
 import re
 import select
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -616,6 +616,33 @@ def _study_draft(args: argparse.Namespace, spec: Any, root: Path) -> int:
     return 0
 
 
+def _study_queue(args: argparse.Namespace, log: Callable[[str], None]) -> int:
+    """`pimbrl study run A B ...`: a queue, each study in its own directory with its own archive (``run_studies``)."""
+    from .experiments.engine import QueuedStudy, run_studies
+    from .experiments.spec import load_spec
+
+    if args.run_dir is not None or args.archive is not None:
+        raise ValueError(
+            "`pimbrl study run` with several specs runs each in its own directory with its own archive: drop --run-dir, --archive"
+        )
+    queue = []
+    for path in args.specs:
+        spec = load_spec(path)
+        root = _study_run_dir(path, spec.name, None)
+        _check_run_dir(str(root))
+        archive = _study_archive(args, spec, root)
+        keep = args.keep_archive
+        queue.append(QueuedStudy(spec, root, rerun=args.rerun, replicas=not args.no_replicas, archive=archive, keep_archive=keep))
+    records = run_studies(queue, jobs=args.jobs, backend=args.backend, address=args.address, log=log)
+    failed = False
+    for q, record in zip(queue, records):
+        print(f"study {q.spec.name}: {len(record['runs'])} runs recorded in {q.root / 'record.json'}")
+        if record["failed"]:
+            print(f"study {q.spec.name}: failed runs: {', '.join(record['failed'])}", file=sys.stderr)
+            failed = True
+    return 1 if failed else 0
+
+
 def _cmd_study(args: argparse.Namespace) -> int:
     from .experiments.engine import plan_study, run_study
     from .experiments.report import load_record, study_report, write_pages
@@ -644,9 +671,11 @@ def _cmd_study(args: argparse.Namespace) -> int:
             each_root = _study_run_dir(path, each.name, None)
             _study_status(each, each_root, args.jobs, _study_archive(args, each, each_root))
         return 0
+    if args.action == "run" and len(args.specs) > 1:
+        return _study_queue(args, log)
     if len(args.specs) != 1 and args.action != "draft":
         raise ValueError(
-            f"`pimbrl study {args.action}` takes one spec (several only with status, draft or report --pages), got "
+            f"`pimbrl study {args.action}` takes one spec (several only with run, status, draft or report --pages), got "
             f"{len(args.specs)}"
         )
     spec = load_spec(args.specs[0])
@@ -916,7 +945,9 @@ def build_parser() -> argparse.ArgumentParser:
         "study",
         help="run a study spec (systems x methods x seeds x settings), resumable; report its tables and hypotheses",
         description="plan SPEC: list its runs. run SPEC: train what is missing (local processes or Ray) and write its "
-        "record. status SPEC: which runs have finished, run or wait, and the compute left (no returns). "
+        "record; run A B ...: a queue, in order, each study in its own directory (a process one study leaves free at its "
+        "end starts the next one's runs; each record is written as its study ends). status SPEC: which runs have "
+        "finished, run or wait, and the compute left (no returns). "
         "report SPEC: tables with intervals, comparisons, hypothesis verdicts and figures from its record; "
         "report --pages DOCS SPEC...: docs/results.md and docs/reproduce.md from many specs. draft TUNING "
         "[AMENDMENT...]: the confirmatory spec a finished tuning study (and its amendments) gives by the rules of "

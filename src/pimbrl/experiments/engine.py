@@ -37,12 +37,14 @@ __all__ = [
     "RECORD_FILE",
     "RECORD_FORMAT",
     "SPEC_FILE",
+    "QueuedStudy",
     "StudyRun",
     "collect_record",
     "directory_name",
     "env_directory",
     "execute_run",
     "plan_study",
+    "run_studies",
     "run_study",
     "same_run_key",
     "study_thresholds",
@@ -228,90 +230,208 @@ def run_study(
     ``keep_archive`` each run is copied into ``archive`` as it finishes, and every finished run at the end (a
     copy that cannot be made is logged; the study goes on).
     """
-    from .archive import archive_study, plan_restore, restore_study
-    from .registration import start_study
-    from .replicas import plan_replicas, replicate, same_episodes
-
-    if backend not in ("local", "ray"):
-        raise ConfigError(f"backend must be local or ray, got {backend!r}")
-    if spec.record is not None and spec.record.format != "study":
-        raise ConfigError(
-            f"study {spec.name} reads the record {spec.record.path} made before the study engine; it has no runs to make "
-            "(pimbrl study report shows it)"
-        )
-    root = Path(root).resolve()  # absolute: a Ray worker elsewhere (or on another node) writes the same runs
-    runs = plan_study(spec, root)  # every configuration checked before anything runs
-    for r in runs:  # no link on the way below the root (it would lead the runs elsewhere): checked unresolved
-        check_below(root, r.path.relative_to(root), "directory")
-    failed: list[str] = []
+    queued = QueuedStudy(spec, root, rerun=rerun, replicas=replicas, archive=archive, keep_archive=keep_archive)
     if not run:
-        return _write_record(spec, runs, root, failed, run=False)
-    root.mkdir(parents=True, exist_ok=True)
-    lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
-    try:
-        specs = [RunSpec(r.label(spec.compact), r.seed, r.path, r.config) for r in runs]
-        by_run = {str(r.path): r for r in runs}
-        plan = plan_restore(spec, root, archive, runs) if archive is not None else None
-        if plan is not None and plan.refusal is not None:  # refused before --rerun moves anything
-            raise ConfigError(plan.refusal)
-        check_reuse(specs, rerun=rerun, log=log)
-        if archive is not None:  # after --rerun moved runs aside their archived copies come back: planned again
-            restored = restore_study(spec, root, archive, runs, None if rerun else plan)
-            if restored.copied or restored.passed:
-                log(restored.line("restored", Path(archive)))
-        start_study(spec, root, runs)  # after the checks: a start refused there is no start
-        if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
-            atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
-        todo = [r for r in runs if RunDirectory(r.path).status != "finished"]
-        log(
-            f"study {spec.name}: {len(runs)} runs, {len(runs) - len(todo)} finished, {len(todo)} to run"
-            + (" on Ray" if todo and backend == "ray" else "")
-        )
+        return _write_record(spec, queued.runs, queued.root, [], run=False)
+    return run_studies([queued], jobs=jobs, backend=backend, address=address, status=status, log=log)[0]
 
-        def train(batch: list[StudyRun]) -> list[str]:
-            if backend == "ray" and batch:
-                return [str(Path(p).relative_to(root)) for p in _run_on_ray(batch, spec.imports, address, jobs, log)]
-            if not batch:
-                return []
-            by_path = {str(r.path) for r in batch}
-            done = (lambda s: keep([by_run[str(s.path)]])) if keep_archive and archive is not None else None
-            bad = run_all(
-                [s for s in specs if str(s.path) in by_path], jobs=jobs, log=log, status=status, imports=spec.imports,
-                on_done=done, returns=spec.kind != "confirmatory",
-            )  # fmt: skip
-            return [str(s.path.relative_to(root)) for s in bad]
 
-        def keep(which: Sequence[StudyRun]) -> None:  # into the archive; a failure there never stops the study
-            assert archive is not None
-            try:
-                result = archive_study(spec, root, archive, which)
-            except (ConfigError, OSError, ValueError) as exc:
-                log(f"archive: nothing copied to {archive} ({str(exc).splitlines()[0]}); the study goes on")
-                return
-            if result.copied:
-                log(result.line("archived", Path(archive)))
+class QueuedStudy:
+    """One study to train, alone or in a queue (:func:`run_studies`): its runs planned and checked.
 
-        copies = plan_replicas(runs, todo) if replicas else {}  # seed-free controllers: two probes, the rest copied
-        failed = train([r for r in todo if r.path not in copies])
+    Nothing is touched until :meth:`open`; the arguments are :func:`run_study`'s.
+    """
+
+    def __init__(
+        self,
+        spec: StudySpec,
+        root: str | Path,
+        *,
+        rerun: bool = False,
+        replicas: bool = True,
+        archive: str | Path | None = None,
+        keep_archive: bool = False,
+    ) -> None:
+        if spec.record is not None and spec.record.format != "study":
+            raise ConfigError(
+                f"study {spec.name} reads the record {spec.record.path} made before the study engine; it has no runs to "
+                "make (pimbrl study report shows it)"
+            )
+        self.spec = spec
+        self.root = Path(root).resolve()  # absolute: a Ray worker elsewhere (or on another node) writes the same runs
+        self.runs = plan_study(spec, self.root)  # every configuration checked before anything runs
+        for r in self.runs:  # no link on the way below the root (it would lead the runs elsewhere): checked unresolved
+            check_below(self.root, r.path.relative_to(self.root), "directory")
+        self.rerun, self.replicas, self.keep_archive = rerun, replicas, keep_archive
+        self.archive = None if archive is None else Path(archive)
+        self.record: dict[str, Any] | None = None  # written when the last run has ended
+        self.failed: list[str] = []
+        self._lock: int | None = None
+        self._by_path = {str(r.path): r for r in self.runs}
+        self._copies: dict[Path, tuple[StudyRun, StudyRun]] = {}
+        self._outstanding: set[str] = set()
+        self._second: list[StudyRun] = []  # seed-free copies waiting for their two seeds (made, or trained)
+        self._log: Callable[[str], None] = print
+
+    def open(self, log: Callable[[str], None], backend: str = "local") -> list[RunSpec]:
+        """Lock the directory, restore the archive, register the start, log what is to run.
+
+        Returns the runs to train first (of a seed-free controller, the two seeds the others wait for), or
+        ``[]`` when nothing is left to train (the record is written then).
+        """
+        from .archive import plan_restore, restore_study
+        from .registration import start_study
+        from .replicas import plan_replicas
+
+        spec, root = self.spec, self.root
+        self._log = log
+        root.mkdir(parents=True, exist_ok=True)
+        self._lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
+        try:
+            plan = plan_restore(spec, root, self.archive, self.runs) if self.archive is not None else None
+            if plan is not None and plan.refusal is not None:  # refused before --rerun moves anything
+                raise ConfigError(plan.refusal)
+            check_reuse([self._run_spec(r) for r in self.runs], rerun=self.rerun, log=log)
+            if self.archive is not None:  # after --rerun moved runs aside their archived copies come back: planned again
+                restored = restore_study(spec, root, self.archive, self.runs, None if self.rerun else plan)
+                if restored.copied or restored.passed:
+                    log(restored.line("restored", self.archive))
+            start_study(spec, root, self.runs)  # after the checks: a start refused there is no start
+            if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
+                atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
+            todo = [r for r in self.runs if RunDirectory(r.path).status != "finished"]
+            on_ray = " on Ray" if todo and backend == "ray" else ""
+            log(f"study {spec.name}: {len(self.runs)} runs, {len(self.runs) - len(todo)} finished, {len(todo)} to run{on_ray}")
+            self._copies = plan_replicas(self.runs, todo) if self.replicas else {}
+            first = [r for r in todo if r.path not in self._copies]
+            self._second = [r for r in todo if r.path in self._copies]
+            self._outstanding = {str(r.path) for r in first}
+            return [self._run_spec(r) for r in first] if first else self._next()
+        except BaseException:
+            self.close()
+            raise
+
+    def ended(self, run: RunSpec, ok: bool) -> list[RunSpec]:
+        """A run of this study ended (``ok``: finished well): archived where asked; the runs to make next."""
+        path = str(run.path)
+        self._outstanding.discard(path)
+        if ok and self.keep_archive and self.archive is not None:
+            self._keep([self._by_path[path]])
+        elif not ok:
+            self.failed.append(str(Path(path).relative_to(self.root)))
+        return [] if self._outstanding else self._next()
+
+    def _next(self) -> list[RunSpec]:
+        """After the first runs, the seed-free copies whose two seeds agree are made and the rest train.
+
+        When nothing is left to train, the record is written.
+        """
+        from .replicas import replicate, same_episodes
+
+        waiting, self._second = self._second, []
         rest = []
-        for copy in (r for r in todo if r.path in copies):
-            first, second = copies[copy.path]
+        for copy in waiting:
+            first, second = self._copies[copy.path]
             if not same_episodes(first, second):
                 rest.append(copy)
                 continue
             try:
-                replicate(first, copy, second, root)
+                replicate(first, copy, second, self.root)
             except (OSError, ValueError) as exc:  # that seed trains instead (shutil.Error is an OSError)
-                log(f"no copy for {copy.label(spec.compact)} seed {copy.seed} ({exc}); training it")
+                self._log(f"no copy for {copy.label(self.spec.compact)} seed {copy.seed} ({exc}); training it")
                 rest.append(copy)
                 continue
-            log(f"copy {copy.label(spec.compact)} seed {copy.seed}: seed-free, seeds {first.seed} and {second.seed} agree")
-        failed += train(rest)
-        if keep_archive and archive is not None:
-            keep(runs)  # the copies of seed-free runs, and runs finished on Ray
-        return _write_record(spec, runs, root, failed, run=True)  # under the lock: no other driver moves a run meanwhile
+            self._log(
+                f"copy {copy.label(self.spec.compact)} seed {copy.seed}: seed-free, seeds {first.seed} and {second.seed} agree"
+            )
+        if rest:
+            self._outstanding = {str(r.path) for r in rest}
+            return [self._run_spec(r) for r in rest]
+        self.finish()
+        return []
+
+    def finish(self) -> dict[str, Any]:
+        """Archive every finished run (where asked), write the record, unlock the directory."""
+        try:
+            if self.keep_archive and self.archive is not None:
+                self._keep(self.runs)  # the copies of seed-free runs, and runs finished on Ray
+            self.record = _write_record(self.spec, self.runs, self.root, self.failed, run=True)  # under the lock
+        finally:
+            self.close()
+        return self.record
+
+    def close(self) -> None:
+        """Unlock the directory (once)."""
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
+
+    def _keep(self, which: Sequence[StudyRun]) -> None:  # into the archive; a failure there never stops the study
+        from .archive import archive_study
+
+        assert self.archive is not None
+        try:
+            result = archive_study(self.spec, self.root, self.archive, which)
+        except (ConfigError, OSError, ValueError) as exc:
+            self._log(f"archive: nothing copied to {self.archive} ({str(exc).splitlines()[0]}); the study goes on")
+            return
+        if result.copied:
+            self._log(result.line("archived", self.archive))
+
+    def _run_spec(self, r: StudyRun) -> RunSpec:
+        return RunSpec(r.label(self.spec.compact), r.seed, r.path, r.config, tuple(self.spec.imports))
+
+
+def run_studies(
+    studies: Sequence[QueuedStudy],
+    *,
+    jobs: int = 1,
+    backend: str = "local",
+    address: str | None = None,
+    status: bool = True,
+    log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Train a queue of studies, in order, and return their records (each written as its last run ends).
+
+    With local processes the ``jobs`` processes are shared: when a study's last runs are training, a process
+    it leaves free starts the next study's first run, so no core waits at a study's end. Every study's
+    directory is locked, its archive restored and its start registered before the first run starts (a
+    refusal anywhere stops the queue before anything trains). On Ray the studies run one after another.
+    """
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"backend must be local or ray, got {backend!r}")
+    roots = [q.root for q in studies]
+    if len(set(roots)) != len(roots):
+        raise ConfigError("two studies of the queue share a run directory: give each its own")
+    opened: list[QueuedStudy] = []
+    try:
+        first: list[list[RunSpec]] = []
+        for q in studies:
+            opened.append(q)
+            first.append(q.open(log, backend))
+        owner = {str(r.path): q for q in studies for r in q.runs}
+        if backend == "ray":
+            for q, batch in zip(studies, first):
+                while batch:
+                    bad = set(_run_on_ray([_study_run(q, s) for s in batch], q.spec.imports, address, jobs, log))
+                    batch = [nxt for s in batch for nxt in q.ended(s, str(s.path) not in bad)]
+        else:
+            confirmatory = any(q.spec.kind == "confirmatory" for q in studies)
+            run_all(
+                [s for batch in first for s in batch], jobs=jobs, log=log, status=status,
+                on_end=lambda s, ok: owner[str(s.path)].ended(s, ok), returns=not confirmatory,
+            )  # fmt: skip
+        for q in studies:  # a study whose runs all ended without a record (none can be left: the record, as before)
+            if q.record is None:
+                q.finish()
+        return [q.record for q in studies if q.record is not None]
     finally:
-        os.close(lock)
+        for q in opened:
+            q.close()
+
+
+def _study_run(q: QueuedStudy, s: RunSpec) -> StudyRun:
+    return q._by_path[str(s.path)]
 
 
 def _write_record(spec: StudySpec, runs: Sequence[StudyRun], root: Path, failed: list[str], run: bool) -> dict[str, Any]:

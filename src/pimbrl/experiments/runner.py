@@ -87,6 +87,8 @@ class RunSpec:
     seed: int
     path: Path
     config: TrainConfig
+    #: the ``--import`` arguments of this run's child besides :func:`run_all`'s (its study's, in a queue)
+    imports: tuple[str, ...] = ()
 
 
 def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -329,6 +331,7 @@ def run_all(
     imports: Sequence[str] = (),
     on_done: Callable[[RunSpec], None] | None = None,
     returns: bool = True,
+    on_end: Callable[[RunSpec, bool], Sequence[RunSpec]] | None = None,
 ) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
@@ -339,32 +342,20 @@ def run_all(
     per running child is shown on stderr (:func:`child_status`). ``imports``: the ``--import`` arguments each
     child gets (the modules or files that declare a user's system). ``on_done(spec)`` is called as each run
     finishes well (while the others train). ``returns=False``: the status lines leave the returns out (a
-    confirmatory study's).
+    confirmatory study's). ``on_end(spec, ok)`` is called as each run ends, well or not (not when a signal
+    stopped it), and returns runs to make next: they go before every run still waiting (a queue of studies:
+    :func:`~.engine.run_studies`).
     """
-    pending = []
-    imported = [arg for spec in imports for arg in ("--import", spec)]
-    for spec in specs:
-        run_status = RunDirectory(spec.path).status
-        if run_status == "finished":
-            continue
-        if run_status is None:
-            request = Path(spec.path) / REQUEST_FILE
-            atomic_write_bytes(request, (json.dumps(config_to_dict(spec.config), indent=2) + "\n").encode())
-            cmd = [
-                sys.executable,
-                "-m",
-                "pimbrl.cli",
-                "train",
-                "--config",
-                str(request),
-                "--run-dir",
-                str(spec.path),
-                "--quiet",
-                *imported,
-            ]
-        else:
-            cmd = [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet", *imported]
-        pending.append((spec, cmd))
+
+    def waiting(batch: Sequence[RunSpec]) -> list[tuple[RunSpec, list[str]]]:
+        out = []
+        for spec in batch:
+            command = _command(spec, [*imports, *spec.imports])
+            if command is not None:
+                out.append((spec, command))
+        return out
+
+    pending = waiting(specs)
     failed: list[RunSpec] = []
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
     lines = _StatusLines(status and bool(pending), returns)
@@ -403,6 +394,8 @@ def run_all(
                     log(f"done {spec.label} seed {spec.seed}")
                     if on_done is not None:
                         on_done(spec)
+                if on_end is not None and not _stopped(proc.returncode):
+                    pending[:0] = waiting(on_end(spec, proc.returncode == 0))
             lines.show([spec for spec, _, _ in running])
     finally:
         sigterm.restore()
@@ -413,6 +406,24 @@ def run_all(
             if _stopped(proc.returncode):
                 log(_stopped_line(spec, proc.returncode))
     return failed
+
+
+def _command(spec: RunSpec, imports: Sequence[str]) -> list[str] | None:
+    """The child's command line for ``spec`` (``None``: the run is finished).
+
+    A new run's configuration is written to ``<run>/config.request.json`` and trained from it; an interrupted
+    one is resumed.
+    """
+    imported = [arg for module in imports for arg in ("--import", module)]
+    run_status = RunDirectory(spec.path).status
+    if run_status == "finished":
+        return None
+    if run_status is not None:
+        return [sys.executable, "-m", "pimbrl.cli", "resume", str(spec.path), "--quiet", *imported]
+    request = Path(spec.path) / REQUEST_FILE
+    atomic_write_bytes(request, (json.dumps(config_to_dict(spec.config), indent=2) + "\n").encode())
+    train = ["train", "--config", str(request), "--run-dir", str(spec.path), "--quiet"]
+    return [sys.executable, "-m", "pimbrl.cli", *train, *imported]
 
 
 def _stopped(returncode: int) -> bool:
