@@ -285,7 +285,7 @@ def test_rerun_moves_nothing_when_the_archive_is_refused_and_gets_archived_copie
     (stale / "study.json").write_text(json.dumps(registration))
     logs: list[str] = []
     run_study(spec, stale, archive=archive, rerun=True, status=False, log=logs.append)
-    assert any(line.startswith("restored 1 finished run(s)") for line in logs) and "2 finished, 0 to run" in logs[-1]
+    assert any(line.startswith("restored 1 finished run(s)") for line in logs) and "2 finished, 0 to run" in logs[-2]
 
 
 def test_archiving_into_another_study_s_folder_removes_nothing_there(tmp_path) -> None:

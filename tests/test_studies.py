@@ -448,8 +448,16 @@ def test_a_confirmatory_study_s_status_lines_leave_the_returns_out(tmp_path, mon
     import pimbrl.experiments.registration as registration
 
     seen: list[bool] = []
-    monkeypatch.setattr(engine, "run_all", lambda specs, **kw: seen.append(kw["returns"]) or [])
+
+    def run_all(specs, **kw):  # the study opens (its runs are not trained) and ends as its runs stand
+        seen.append(kw["returns"])
+        while kw["more"]():
+            pass
+        return []
+
+    monkeypatch.setattr(engine, "run_all", run_all)
     monkeypatch.setattr(registration, "start_study", lambda *a, **kw: {})
+    monkeypatch.setattr(registration, "check_start", lambda *a, **kw: (None, None))
     for kind in ("confirmatory", "exploratory"):
         engine.run_study(load_spec(_spec(tmp_path, name=f"{kind}.yaml", kind=kind)), tmp_path / kind, log=lambda line: None)
     assert seen == [False, True]
@@ -986,15 +994,17 @@ def test_a_queue_starts_the_next_study_in_a_process_the_last_one_leaves_free(tmp
     from pimbrl.experiments.engine import QueuedStudy, run_studies
 
     a = load_spec(_spec(tmp_path, name="a.yaml"))
-    b = load_spec(_spec(tmp_path, name="b.yaml", seeds=[1]))
+    b = load_spec(_spec(tmp_path, name="b.yaml", seeds=[1], overrides={**TINY_MFRL, "total_steps": 400}))  # longer
     lines: list[str] = []
-    records = run_studies(
-        [QueuedStudy(a, tmp_path / "qa"), QueuedStudy(b, tmp_path / "qb")], jobs=2, status=False, log=lines.append
-    )
+    queue = [QueuedStudy(a, tmp_path / "qa"), QueuedStudy(b, tmp_path / "qb")]
+    records = run_studies(queue, jobs=2, status=False, log=lines.append)
     starts = [i for i, line in enumerate(lines) if line.startswith("start ")]
-    first_done = next(i for i, line in enumerate(lines) if line.startswith("done "))
-    assert len(starts) == 2 and max(starts) < first_done  # both at once: a's one run left a process to b
+    done = [i for i, line in enumerate(lines) if line.startswith("done ")]
+    assert len(starts) == 2 and max(starts) < min(done)  # both at once: a's one run left a process to b
     assert "/qa/" in lines[starts[0]] and "/qb/" in lines[starts[1]]
+    recorded = [i for i, line in enumerate(lines) if " runs recorded in " in line]
+    assert [lines[i].split(":")[0] for i in recorded] == ["study a", "study b"]
+    assert recorded[0] < done[1]  # a's record was written when a's run ended, while b's still trained
     assert [r["study"] for r in records] == ["a", "b"] and all(not r["failed"] for r in records)
     assert json.loads((tmp_path / "qa" / RECORD_FILE).read_text())["runs"][0]["seed"] == 0
     alone = run_study(b, tmp_path / "b-alone", status=False, log=lambda m: None)
@@ -1011,11 +1021,17 @@ def test_a_queue_starts_the_next_study_in_a_process_the_last_one_leaves_free(tmp
 
 
 @pytest.mark.slow
-def test_a_failed_run_is_its_own_study_s_and_the_queue_goes_on(tmp_path) -> None:
+@pytest.mark.parametrize(
+    ("how", "line"),
+    [("raise SystemExit('fragile: told to fail')", "FAILED "), ("os.kill(os.getpid(), signal.SIGTERM)", "stopped ")],
+    ids=["fails", "stopped"],
+)
+def test_a_failed_run_is_its_own_study_s_and_the_queue_goes_on(tmp_path, how: str, line: str) -> None:
+    """A run that fails, or that a signal sent to it alone stops, is its study's failure; the next study trains."""
     from pimbrl.experiments.engine import QueuedStudy, run_studies
 
     (tmp_path / "fragile.py").write_text(
-        "from pathlib import Path\nif Path(__file__).with_suffix('.fail').exists():\n    raise SystemExit('fragile: told to fail')\n"
+        f"import os, signal\nfrom pathlib import Path\nif Path(__file__).with_suffix('.fail').exists():\n    {how}\n"
     )
     a = load_spec(_spec(tmp_path, name="a.yaml", imports=["fragile.py"], seeds=[0, 1]))
     b = load_spec(_spec(tmp_path, name="b.yaml"))
@@ -1025,20 +1041,26 @@ def test_a_failed_run_is_its_own_study_s_and_the_queue_goes_on(tmp_path) -> None
     records = run_studies(queue, jobs=2, status=False, log=lines.append)
     assert sorted(records[0]["failed"]) == ["mfrl/seed0", "mfrl/seed1"]  # in its record, relative to its directory
     assert not records[1]["failed"] and records[1]["runs"][0]["final_return"] is not None
-    assert sum(line.startswith("FAILED ") and "fragile: told to fail" in line for line in lines) == 2
+    assert sum(entry.startswith(line) for entry in lines) == 2
+    assert json.loads((tmp_path / "qa" / RECORD_FILE).read_text())["failed"] == records[0]["failed"]
 
 
 def test_a_queue_is_checked_whole_before_any_run_starts(tmp_path, capsys, monkeypatch) -> None:
     from pimbrl.experiments.engine import QueuedStudy, run_studies
 
     a, b = load_spec(_spec(tmp_path, name="a.yaml")), load_spec(_spec(tmp_path, name="b.yaml"))
-    with pytest.raises(ConfigError, match="two studies of the queue share a run directory"):
+    with pytest.raises(ConfigError, match="studies a and b of the queue share a run directory"):
         run_studies([QueuedStudy(a, tmp_path / "x"), QueuedStudy(b, tmp_path / "x")], log=lambda m: None)
     start_study(load_spec(_spec(tmp_path, name="c.yaml")), tmp_path / "held")  # b's directory holds another study
     with pytest.raises(ConfigError, match="holds the study 'c', not 'b'"):
         run_studies([QueuedStudy(a, tmp_path / "qa"), QueuedStudy(b, tmp_path / "held")], log=lambda m: None)
-    assert not any(p.name == "config.request.json" for p in (tmp_path / "qa").rglob("*"))  # a trained nothing
-    assert not (tmp_path / "qa" / RECORD_FILE).exists()
+    assert not any(p.name == "config.request.json" for p in (tmp_path / "qa").rglob("*"))  # a trained nothing,
+    assert not (tmp_path / "qa" / RECORD_FILE).exists() and not (tmp_path / "qa" / "study.json").exists()  # nor started
+    from pimbrl.experiments.runner import lock_comparison
+
+    os.close(lock_comparison(tmp_path / "qa"))  # and its directory is free again
+    with pytest.raises(ConfigError, match="share a run directory"):  # one inside the other
+        run_studies([QueuedStudy(a, tmp_path / "x"), QueuedStudy(b, tmp_path / "x" / "b")], log=lambda m: None)
     monkeypatch.chdir(tmp_path)
     assert main(["study", "run", "a.yaml", "b.yaml", "--run-dir", "x"]) == 2
     assert "with several specs runs each in its own directory with its own archive: drop --run-dir" in capsys.readouterr().err

@@ -635,8 +635,7 @@ def _study_queue(args: argparse.Namespace, log: Callable[[str], None]) -> int:
         queue.append(QueuedStudy(spec, root, rerun=args.rerun, replicas=not args.no_replicas, archive=archive, keep_archive=keep))
     records = run_studies(queue, jobs=args.jobs, backend=args.backend, address=args.address, log=log)
     failed = False
-    for q, record in zip(queue, records):
-        print(f"study {q.spec.name}: {len(record['runs'])} runs recorded in {q.root / 'record.json'}")
+    for q, record in zip(queue, records):  # each study's "runs recorded" line was logged as it ended
         if record["failed"]:
             print(f"study {q.spec.name}: failed runs: {', '.join(record['failed'])}", file=sys.stderr)
             failed = True
@@ -705,7 +704,6 @@ def _cmd_study(args: argparse.Namespace) -> int:
             spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun,
             replicas=not args.no_replicas, archive=archive, keep_archive=args.keep_archive, log=log,
         )  # fmt: skip
-        print(f"study {spec.name}: {len(record['runs'])} runs recorded in {root / 'record.json'}")
         if record["failed"]:
             print(f"failed runs: {', '.join(record['failed'])}", file=sys.stderr)
             return 1

@@ -15,6 +15,7 @@ validation transitions, agent updates, wall time and the per-evaluation curve.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import itertools
 import json
@@ -230,10 +231,14 @@ def run_study(
     ``keep_archive`` each run is copied into ``archive`` as it finishes, and every finished run at the end (a
     copy that cannot be made is logged; the study goes on).
     """
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"backend must be local or ray, got {backend!r}")
     queued = QueuedStudy(spec, root, rerun=rerun, replicas=replicas, archive=archive, keep_archive=keep_archive)
     if not run:
         return _write_record(spec, queued.runs, queued.root, [], run=False)
-    return run_studies([queued], jobs=jobs, backend=backend, address=address, status=status, log=log)[0]
+    run_studies([queued], jobs=jobs, backend=backend, address=address, status=status, log=log)
+    assert queued.record is not None  # a study that ended has its record; one that did not raised
+    return queued.record
 
 
 class QueuedStudy:
@@ -272,28 +277,45 @@ class QueuedStudy:
         self._outstanding: set[str] = set()
         self._second: list[StudyRun] = []  # seed-free copies waiting for their two seeds (made, or trained)
         self._log: Callable[[str], None] = print
+        self._plan: Any = None  # the archive's restore plan, made by check()
 
-    def open(self, log: Callable[[str], None], backend: str = "local") -> list[RunSpec]:
-        """Lock the directory, restore the archive, register the start, log what is to run.
+    def check(self, log: Callable[[str], None]) -> None:
+        """Lock the directory and check what a start refuses, writing nothing (a queue checks every study first)."""
+        from .archive import plan_restore
+        from .registration import check_start
+
+        self._log = log
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._lock = lock_comparison(self.root)  # before any run is looked at: one driver in a directory at a time
+        try:
+            plan = plan_restore(self.spec, self.root, self.archive, self.runs) if self.archive is not None else None
+            if plan is not None and plan.refusal is not None:  # refused before --rerun moves anything
+                raise ConfigError(plan.refusal)
+            self._plan = plan
+            if not self.rerun:
+                check_reuse([self._run_spec(r) for r in self.runs], rerun=False, log=log)
+            check_start(self.spec, self.root, self.runs)
+        except BaseException:
+            self.close()
+            raise
+
+    def open(self, backend: str = "local") -> list[RunSpec]:
+        """Restore the archive, register the start, log what is to run (after :meth:`check`).
 
         Returns the runs to train first (of a seed-free controller, the two seeds the others wait for), or
         ``[]`` when nothing is left to train (the record is written then).
         """
-        from .archive import plan_restore, restore_study
+        from .archive import restore_study
         from .registration import start_study
         from .replicas import plan_replicas
 
-        spec, root = self.spec, self.root
-        self._log = log
-        root.mkdir(parents=True, exist_ok=True)
-        self._lock = lock_comparison(root)  # before any run is looked at: one driver in a directory at a time
+        spec, root, log = self.spec, self.root, self._log
+        assert self._lock is not None, "check() first"
         try:
-            plan = plan_restore(spec, root, self.archive, self.runs) if self.archive is not None else None
-            if plan is not None and plan.refusal is not None:  # refused before --rerun moves anything
-                raise ConfigError(plan.refusal)
-            check_reuse([self._run_spec(r) for r in self.runs], rerun=self.rerun, log=log)
+            if self.rerun:  # runs of another configuration moved aside, to train again
+                check_reuse([self._run_spec(r) for r in self.runs], rerun=True, log=log)
             if self.archive is not None:  # after --rerun moved runs aside their archived copies come back: planned again
-                restored = restore_study(spec, root, self.archive, self.runs, None if self.rerun else plan)
+                restored = restore_study(spec, root, self.archive, self.runs, None if self.rerun else self._plan)
                 if restored.copied or restored.passed:
                     log(restored.line("restored", self.archive))
             start_study(spec, root, self.runs)  # after the checks: a start refused there is no start
@@ -354,11 +376,17 @@ class QueuedStudy:
         """Archive every finished run (where asked), write the record, unlock the directory."""
         try:
             if self.keep_archive and self.archive is not None:
-                self._keep(self.runs)  # the copies of seed-free runs, and runs finished on Ray
+                self._keep(self.runs)  # the copies of seed-free runs, and any run the archive missed
             self.record = _write_record(self.spec, self.runs, self.root, self.failed, run=True)  # under the lock
+            self._log(f"study {self.spec.name}: {len(self.record['runs'])} runs recorded in {self.root / RECORD_FILE}")
         finally:
             self.close()
         return self.record
+
+    @property
+    def is_open(self) -> bool:
+        """Whether this driver holds the study's directory (between :meth:`check` and the record)."""
+        return self._lock is not None
 
     def close(self) -> None:
         """Unlock the directory (once)."""
@@ -378,6 +406,10 @@ class QueuedStudy:
         if result.copied:
             self._log(result.line("archived", self.archive))
 
+    def planned(self, run: RunSpec) -> StudyRun:
+        """The planned run of one of this study's run specs."""
+        return self._by_path[str(run.path)]
+
     def _run_spec(self, r: StudyRun) -> RunSpec:
         return RunSpec(r.label(self.spec.compact), r.seed, r.path, r.config, tuple(self.spec.imports))
 
@@ -391,47 +423,83 @@ def run_studies(
     status: bool = True,
     log: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
-    """Train a queue of studies, in order, and return their records (each written as its last run ends).
+    """Train a queue of studies, in order, and return their records (each written as its study ends).
 
-    With local processes the ``jobs`` processes are shared: when a study's last runs are training, a process
-    it leaves free starts the next study's first run, so no core waits at a study's end. Every study's
-    directory is locked, its archive restored and its start registered before the first run starts (a
-    refusal anywhere stops the queue before anything trains). On Ray the studies run one after another.
+    Every study is first checked (its directory locked; its archive, its registration and its run directories
+    checked) before anything is written, so a refusal anywhere stops the queue untouched. A study is then
+    opened (archive restored, start registered) when the queue reaches it: with local processes, when a
+    process is free and no run of the studies before it waits, so no core waits for a study's slowest run;
+    the runs a study adds later (seed-free copies that must train) go before the next study's. On Ray the
+    studies run one after another. An error while one study is opened or recorded is logged, the queue goes
+    on, and the first such error is raised at the end.
     """
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be local or ray, got {backend!r}")
-    roots = [q.root for q in studies]
-    if len(set(roots)) != len(roots):
-        raise ConfigError("two studies of the queue share a run directory: give each its own")
-    opened: list[QueuedStudy] = []
+    for i, q in enumerate(studies):
+        for other in studies[:i]:
+            if q.root.is_relative_to(other.root) or other.root.is_relative_to(q.root):
+                raise ConfigError(
+                    f"studies {other.spec.name} and {q.spec.name} of the queue share a run directory ({other.root} and "
+                    f"{q.root}): give each its own"
+                )
+    if backend == "ray" and not ray_available():
+        raise ConfigError("Ray is not installed: pip install 'pimbrl[ray]', or run with --backend local")
+    errors: list[BaseException] = []
+
+    def guarded(q: QueuedStudy, step: Callable[[], list[RunSpec]]) -> list[RunSpec]:
+        try:
+            return step()
+        except Exception as exc:  # one study's trouble; the others go on
+            log(f"study {q.spec.name}: {type(exc).__name__}: {exc}; the queue goes on")
+            errors.append(exc)
+            q.close()
+            return []
+
     try:
-        first: list[list[RunSpec]] = []
         for q in studies:
-            opened.append(q)
-            first.append(q.open(log, backend))
+            q.check(log)
         owner = {str(r.path): q for q in studies for r in q.runs}
+        waiting, opened = list(studies), []
+
+        def next_study() -> list[RunSpec]:
+            while waiting:
+                q = waiting.pop(0)
+                opened.append(q)
+                batch = guarded(q, functools.partial(q.open, backend))
+                if batch:
+                    return batch
+            return []
+
+        def ended(s: RunSpec, ok: bool) -> list[RunSpec]:
+            q = owner[str(s.path)]
+            return guarded(q, lambda: q.ended(s, ok))
+
         if backend == "ray":
-            for q, batch in zip(studies, first):
+            for q in studies:
+                opened.append(q)
+                batch = guarded(q, functools.partial(q.open, backend))
                 while batch:
-                    bad = set(_run_on_ray([_study_run(q, s) for s in batch], q.spec.imports, address, jobs, log))
-                    batch = [nxt for s in batch for nxt in q.ended(s, str(s.path) not in bad)]
+                    bad = set(_run_on_ray([q.planned(s) for s in batch], q.spec.imports, address, jobs, log))
+                    batch = [n for s in batch for n in ended(s, str(s.path) not in bad)]
         else:
-            confirmatory = any(q.spec.kind == "confirmatory" for q in studies)
-            run_all(
-                [s for batch in first for s in batch], jobs=jobs, log=log, status=status,
-                on_end=lambda s, ok: owner[str(s.path)].ended(s, ok), returns=not confirmatory,
-            )  # fmt: skip
-        for q in studies:  # a study whose runs all ended without a record (none can be left: the record, as before)
-            if q.record is None:
-                q.finish()
+            confirmatory = any(q.spec.kind == "confirmatory" for q in studies)  # then no line shows returns
+            run_all([], jobs=jobs, log=log, status=status, returns=not confirmatory, on_end=ended, more=next_study)
+        for q in opened:  # every run ended, yet no record (never expected): the record as the runs stand
+            if q.record is None and q.is_open:
+                log(f"study {q.spec.name}: its runs ended without its record; recorded as they stand")
+                guarded(q, functools.partial(_finished, q))
+        if errors:
+            raise errors[0]
         return [q.record for q in studies if q.record is not None]
     finally:
-        for q in opened:
+        for q in studies:
             q.close()
 
 
-def _study_run(q: QueuedStudy, s: RunSpec) -> StudyRun:
-    return q._by_path[str(s.path)]
+def _finished(q: QueuedStudy) -> list[RunSpec]:
+    """:meth:`QueuedStudy.finish` as a step that adds no run."""
+    q.finish()
+    return []
 
 
 def _write_record(spec: StudySpec, runs: Sequence[StudyRun], root: Path, failed: list[str], run: bool) -> dict[str, Any]:

@@ -26,7 +26,15 @@ from ..config import ConfigError
 from ..fileio import atomic_write_bytes, read_below, strict_json
 from .spec import StudySpec
 
-__all__ = ["REGISTRATION_FILE", "committed_spec", "imports_sha256", "read_registration", "start_study", "study_label"]
+__all__ = [
+    "REGISTRATION_FILE",
+    "check_start",
+    "committed_spec",
+    "imports_sha256",
+    "read_registration",
+    "start_study",
+    "study_label",
+]
 
 #: a study directory's registration
 REGISTRATION_FILE = "study.json"
@@ -93,11 +101,14 @@ def read_registration(root: str | Path) -> dict[str, Any] | None:
     return value if isinstance(value, dict) else None
 
 
-def start_study(spec: StudySpec, root: str | Path, runs: Sequence[Any] = ()) -> dict[str, Any]:
-    """Record this start of ``spec`` in ``root`` (see the module docstring); returns the registration.
+def check_start(
+    spec: StudySpec, root: str | Path, runs: Sequence[Any] = ()
+) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """What :func:`start_study` refuses, checked without writing anything.
 
-    ``runs``: the study's planned runs (:class:`~pimbrl.experiments.engine.StudyRun`); a confirmatory study's
-    first start refuses a directory where any of them already exists (made before the registration).
+    Returns the directory's registration (``None``: the study's first start) and, for a confirmatory study's
+    first start, the commit that registered its spec. Refused: a directory of another study; a confirmatory
+    spec not committed unchanged; a confirmatory first start where a planned run already exists.
     """
     root = Path(root)
     current = read_registration(root)
@@ -105,23 +116,36 @@ def start_study(spec: StudySpec, root: str | Path, runs: Sequence[Any] = ()) -> 
         raise ConfigError(
             f"{root} holds the study {current.get('study')!r}, not {spec.name!r}; give each study its own --run-dir"
         )
+    if current is not None or spec.kind != "confirmatory":
+        return current, None
+    registered = committed_spec(spec.path, spec.sha256) if spec.path is not None else None
+    if registered is None:
+        raise ConfigError(
+            f"confirmatory spec {spec.path or spec.name} is not registered: commit it, unchanged, in a commit of its "
+            "own before its first run (git add SPEC && git commit; a spec changed after it was committed is a new "
+            "spec: give it a new file), or mark it kind: exploratory"
+        )
+    existing = [str(r.path) for r in runs if (Path(r.path) / "config.json").exists()]
+    if existing:
+        raise ConfigError(
+            f"confirmatory study {spec.name}: {existing[0]} already holds a run made before the study was registered; "
+            "give the study a new --run-dir"
+        )
+    return None, registered
+
+
+def start_study(spec: StudySpec, root: str | Path, runs: Sequence[Any] = ()) -> dict[str, Any]:
+    """Record this start of ``spec`` in ``root`` (see the module docstring); returns the registration.
+
+    ``runs``: the study's planned runs (:class:`~pimbrl.experiments.engine.StudyRun`); a confirmatory study's
+    first start refuses a directory where any of them already exists (made before the registration).
+    """
+    root = Path(root)
+    current, registered = check_start(spec, root, runs)
     now = time.time()
     if current is None:
         current = {"study": spec.name, "kind": spec.kind, "spec_sha256": spec.sha256, "first_run_started_unix": now, "starts": []}
-        if spec.kind == "confirmatory":
-            registered = committed_spec(spec.path, spec.sha256) if spec.path is not None else None
-            if registered is None:
-                raise ConfigError(
-                    f"confirmatory spec {spec.path or spec.name} is not registered: commit it, unchanged, in a commit of its "
-                    "own before its first run (git add SPEC && git commit; a spec changed after it was committed is a new "
-                    "spec: give it a new file), or mark it kind: exploratory"
-                )
-            existing = [str(r.path) for r in runs if (Path(r.path) / "config.json").exists()]
-            if existing:
-                raise ConfigError(
-                    f"confirmatory study {spec.name}: {existing[0]} already holds a run made before the study was registered; "
-                    "give the study a new --run-dir"
-                )
+        if registered is not None:
             current["registered"] = registered
             current["imports_sha256"] = imports_sha256(spec)
     starts = current.setdefault("starts", [])

@@ -332,6 +332,7 @@ def run_all(
     on_done: Callable[[RunSpec], None] | None = None,
     returns: bool = True,
     on_end: Callable[[RunSpec, bool], Sequence[RunSpec]] | None = None,
+    more: Callable[[], Sequence[RunSpec]] | None = None,
 ) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
@@ -342,28 +343,43 @@ def run_all(
     per running child is shown on stderr (:func:`child_status`). ``imports``: the ``--import`` arguments each
     child gets (the modules or files that declare a user's system). ``on_done(spec)`` is called as each run
     finishes well (while the others train). ``returns=False``: the status lines leave the returns out (a
-    confirmatory study's). ``on_end(spec, ok)`` is called as each run ends, well or not (not when a signal
-    stopped it), and returns runs to make next: they go before every run still waiting (a queue of studies:
-    :func:`~.engine.run_studies`).
+    confirmatory study's).
+
+    For a queue of studies (:func:`~.engine.run_studies`): ``on_end(spec, ok)`` is called as each run ends
+    (``ok``: it finished well; a run a signal stopped while the driver goes on is not ok), also for a run
+    that is already finished when it comes up, and returns runs to make next, which go before every run
+    still waiting; ``more()`` is called when a process is free and no run waits, and returns the next runs
+    (none: the queue is done).
     """
 
     def waiting(batch: Sequence[RunSpec]) -> list[tuple[RunSpec, list[str]]]:
-        out = []
-        for spec in batch:
+        out: list[tuple[RunSpec, list[str]]] = []
+        todo = list(batch)
+        while todo:
+            spec = todo.pop(0)
             command = _command(spec, [*imports, *spec.imports])
             if command is not None:
                 out.append((spec, command))
+            elif on_end is not None:  # finished already: it ends here
+                todo[:0] = on_end(spec, True)
         return out
 
     pending = waiting(specs)
     failed: list[RunSpec] = []
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
-    lines = _StatusLines(status and bool(pending), returns)
+    lines = _StatusLines(status and (bool(pending) or more is not None), returns)
     sigterm = _SigtermFlag()
     try:
-        while pending or running:
+        while True:
             sigterm.forward(running)  # a safe point: every child started so far gets it, then the driver stops
-            while pending and len(running) < max(1, jobs):
+            while len(running) < max(1, jobs):
+                while not pending and more is not None:  # a free process: the queue's next runs
+                    batch = more()
+                    if not batch:
+                        more = None
+                    pending = waiting(batch)
+                if not pending:
+                    break
                 spec, cmd = pending.pop(0)
                 log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
                 Path(spec.path).mkdir(parents=True, exist_ok=True)
@@ -372,6 +388,8 @@ def run_all(
                 out = os.fdopen(fd, "ab")
                 env = pinned_environment(spec.config.threads)
                 running.append((spec, subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env), out))
+            if not running:
+                break
             time.sleep(0.5)
             sigterm.forward(running)
             for item in list(running):
@@ -394,7 +412,7 @@ def run_all(
                     log(f"done {spec.label} seed {spec.seed}")
                     if on_done is not None:
                         on_done(spec)
-                if on_end is not None and not _stopped(proc.returncode):
+                if on_end is not None:
                     pending[:0] = waiting(on_end(spec, proc.returncode == 0))
             lines.show([spec for spec, _, _ in running])
     finally:
