@@ -15,7 +15,7 @@ from pimbrl.experiments.engine import plan_study, run_study
 from pimbrl.experiments.spec import load_spec
 from pimbrl.fileio import UnsafeFileError
 
-from .test_studies import TINY_MFRL
+from .test_studies import TINY_MFRL, _git
 
 
 def _spec(folder: Path, name: str = "s.yaml", **data) -> Path:
@@ -336,3 +336,29 @@ def test_status_of_a_study_whose_runs_are_gone_but_whose_record_is_kept_says_so(
     (tmp_path / "kept.json").write_text("{}")
     assert main(["study", "status", str(path)]) == 0
     assert "no run directory runs/arch here; its record kept.json is kept" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_confirmatory_study_restored_from_its_archive_starts_with_its_registration(tmp_path) -> None:
+    """A fresh run directory of a confirmatory study gets its registration back from the archive; the start is
+    checked against that, not as a first start (whose check of the registering commit would refuse here)."""
+    import time
+
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    _git(repo, "init", "-q")
+    path = _spec(repo, kind="confirmatory", seeds=1)
+    _git(repo, "add", "s.yaml")
+    _git(repo, "commit", "-q", "-m", "register")
+    time.sleep(1.1)  # commit times are whole seconds: the first start comes after the commit
+    first = run_study(
+        load_spec(path), repo / "runs", archive=repo / "archive", keep_archive=True, status=False, log=lambda m: None
+    )
+    assert first["registration"]["registered"] and (repo / "archive" / "study.json").exists()
+    shutil.rmtree(repo / ".git")  # the registering commit is no longer at hand
+    with pytest.raises(ConfigError, match="is not registered"):  # a first start is refused now: the check is alive
+        run_study(load_spec(path), repo / "elsewhere", status=False, log=lambda m: None)
+    lines: list[str] = []
+    again = run_study(load_spec(path), repo / "fresh", archive=repo / "archive", status=False, log=lines.append)
+    assert any(line.startswith("restored 1 finished run(s)") for line in lines)
+    assert again["registration"]["registered"] == first["registration"]["registered"] and _finals(again) == _finals(first)

@@ -1197,3 +1197,26 @@ def test_best_recipe_sections_resolve_to_each_chosen_arm_or_are_refused_with_the
     shared = load_spec(_spec(tmp_path, name="t4.yaml", methods=methods, seeds=1, tuning=tuning,
                              overrides={"eval_protocol": "validation", "total_steps": 300}))  # fmt: skip
     assert 'Every candidate also ran with the study\'s overrides {"total_steps": 300}' in _recipe_sections(shared, chosen)[1]
+
+
+@pytest.mark.slow
+def test_an_error_in_one_study_of_a_queue_drops_its_waiting_runs_and_the_others_train(tmp_path, monkeypatch) -> None:
+    import pimbrl.experiments.archive as archive
+    from pimbrl.experiments.engine import QueuedStudy, run_studies
+    from pimbrl.experiments.runner import lock_comparison
+
+    def broken_archive(spec, *args, **kwargs):
+        raise RuntimeError(f"the archive of {spec.name} is broken")
+
+    monkeypatch.setattr(archive, "archive_study", broken_archive)
+    a = load_spec(_spec(tmp_path, name="a.yaml", seeds=[0, 1]))
+    b = load_spec(_spec(tmp_path, name="b.yaml"))
+    queue = [QueuedStudy(a, tmp_path / "qa", archive=tmp_path / "arch-a", keep_archive=True), QueuedStudy(b, tmp_path / "qb")]
+    lines: list[str] = []
+    with pytest.raises(RuntimeError, match="the archive of a is broken"):  # raised once the queue has ended
+        run_studies(queue, jobs=1, status=False, log=lines.append)
+    assert any("its waiting runs are dropped, the queue goes on" in line for line in lines)
+    assert not any(line.startswith("start ") and "qa/mfrl/seed1" in line for line in lines)  # dropped, never started
+    assert not (tmp_path / "qa" / "mfrl" / "seed1" / "config.json").exists() and not (tmp_path / "qa" / RECORD_FILE).exists()
+    assert json.loads((tmp_path / "qb" / RECORD_FILE).read_text())["runs"][0]["finished"]
+    os.close(lock_comparison(tmp_path / "qa"))  # its directory is free again

@@ -633,9 +633,10 @@ def _study_queue(args: argparse.Namespace, log: Callable[[str], None]) -> int:
         archive = _study_archive(args, spec, root)
         keep = args.keep_archive
         queue.append(QueuedStudy(spec, root, rerun=args.rerun, replicas=not args.no_replicas, archive=archive, keep_archive=keep))
-    records = run_studies(queue, jobs=args.jobs, backend=args.backend, address=args.address, log=log)
+    run_studies(queue, jobs=args.jobs, backend=args.backend, address=args.address, log=log)
     failed = False
-    for q, record in zip(queue, records):  # each study's "runs recorded" line was logged as it ended
+    for q in queue:  # each study's "runs recorded" line was logged as it ended
+        record = q.record or {"failed": []}
         if record["failed"]:
             print(f"study {q.spec.name}: failed runs: {', '.join(record['failed'])}", file=sys.stderr)
             failed = True

@@ -278,6 +278,7 @@ class QueuedStudy:
         self._second: list[StudyRun] = []  # seed-free copies waiting for their two seeds (made, or trained)
         self._log: Callable[[str], None] = print
         self._plan: Any = None  # the archive's restore plan, made by check()
+        self.broken = False  # an error while it was restored, archived or recorded: its runs end, nothing else
 
     def check(self, log: Callable[[str], None]) -> None:
         """Lock the directory and check what a start refuses, writing nothing (a queue checks every study first)."""
@@ -292,9 +293,10 @@ class QueuedStudy:
             if plan is not None and plan.refusal is not None:  # refused before --rerun moves anything
                 raise ConfigError(plan.refusal)
             self._plan = plan
-            if not self.rerun:
-                check_reuse([self._run_spec(r) for r in self.runs], rerun=False, log=log)
-            check_start(self.spec, self.root, self.runs)
+            check_reuse([self._run_spec(r) for r in self.runs], rerun=self.rerun, log=log, move=False)
+            registration = plan.registration if plan is not None else None  # the archive's, restored at the start
+            # with --rerun the stale runs are moved aside before the start: the start checks what is left then
+            check_start(self.spec, self.root, () if self.rerun else self.runs, registration=registration)
         except BaseException:
             self.close()
             raise
@@ -334,9 +336,17 @@ class QueuedStudy:
             raise
 
     def ended(self, run: RunSpec, ok: bool) -> list[RunSpec]:
-        """A run of this study ended (``ok``: finished well): archived where asked; the runs to make next."""
+        """A run of this study ended (``ok``: finished well): archived where asked; the runs to make next.
+
+        For a broken study (an error while it was restored, archived or recorded) nothing more is done: when
+        its last running run has ended its directory is unlocked, and it gets no record.
+        """
         path = str(run.path)
         self._outstanding.discard(path)
+        if self.broken:
+            if not self._outstanding:
+                self.close()
+            return []
         if ok and self.keep_archive and self.archive is not None:
             self._keep([self._by_path[path]])
         elif not ok:
@@ -382,6 +392,12 @@ class QueuedStudy:
         finally:
             self.close()
         return self.record
+
+    def break_off(self) -> None:
+        """After an error in this study: no run of it starts, those running end, then its directory is unlocked."""
+        self.broken = True
+        if not self._outstanding:
+            self.close()
 
     @property
     def is_open(self) -> bool:
@@ -442,17 +458,16 @@ def run_studies(
                     f"studies {other.spec.name} and {q.spec.name} of the queue share a run directory ({other.root} and "
                     f"{q.root}): give each its own"
                 )
-    if backend == "ray" and not ray_available():
-        raise ConfigError("Ray is not installed: pip install 'pimbrl[ray]', or run with --backend local")
     errors: list[BaseException] = []
 
     def guarded(q: QueuedStudy, step: Callable[[], list[RunSpec]]) -> list[RunSpec]:
         try:
             return step()
-        except Exception as exc:  # one study's trouble; the others go on
-            log(f"study {q.spec.name}: {type(exc).__name__}: {exc}; the queue goes on")
+        except Exception as exc:  # one study's trouble: it breaks (its running runs end), the others go on
+            if len(studies) > 1:
+                log(f"study {q.spec.name}: {type(exc).__name__}: {exc}; its waiting runs are dropped, the queue goes on")
             errors.append(exc)
-            q.close()
+            q.break_off()
             return []
 
     try:
@@ -483,10 +498,13 @@ def run_studies(
                     batch = [n for s in batch for n in ended(s, str(s.path) not in bad)]
         else:
             confirmatory = any(q.spec.kind == "confirmatory" for q in studies)  # then no line shows returns
-            run_all([], jobs=jobs, log=log, status=status, returns=not confirmatory, on_end=ended, more=next_study)
-        for q in opened:  # every run ended, yet no record (never expected): the record as the runs stand
-            if q.record is None and q.is_open:
-                log(f"study {q.spec.name}: its runs ended without its record; recorded as they stand")
+            run_all(
+                [], jobs=jobs, log=log, status=status, returns=not confirmatory, on_end=ended, more=next_study,
+                drop=lambda s: owner[str(s.path)].broken,
+            )  # fmt: skip
+        for q in opened:  # every run ended, yet no record (not expected: a safety net): the record as the runs stand
+            if q.record is None and q.is_open and not q.broken:
+                log(f"study {q.spec.name}: its runs ended without its record (unexpected); recorded as they stand")
                 guarded(q, functools.partial(_finished, q))
         if errors:
             raise errors[0]

@@ -102,16 +102,18 @@ def read_registration(root: str | Path) -> dict[str, Any] | None:
 
 
 def check_start(
-    spec: StudySpec, root: str | Path, runs: Sequence[Any] = ()
+    spec: StudySpec, root: str | Path, runs: Sequence[Any] = (), registration: dict[str, Any] | None = None
 ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """What :func:`start_study` refuses, checked without writing anything.
 
     Returns the directory's registration (``None``: the study's first start) and, for a confirmatory study's
     first start, the commit that registered its spec. Refused: a directory of another study; a confirmatory
     spec not committed unchanged; a confirmatory first start where a planned run already exists.
+    ``registration``: the one the directory will hold by the start (an archive's, restored first), else
+    the directory's own.
     """
     root = Path(root)
-    current = read_registration(root)
+    current = registration if registration is not None else read_registration(root)
     if current is not None and current.get("study") not in (None, spec.name):
         raise ConfigError(
             f"{root} holds the study {current.get('study')!r}, not {spec.name!r}; give each study its own --run-dir"

@@ -148,13 +148,14 @@ def lock_comparison(root: Path) -> int:
     return fd
 
 
-def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[str], None] = print) -> None:
+def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[str], None] = print, move: bool = True) -> None:
     """Refuse to reuse a run (finished or interrupted) whose configuration is not the requested one.
 
     Raises :class:`ConfigError` naming the first such run directory and the fields that differ; with
     ``rerun`` each such run is moved aside (to ``<dir>.replaced-<time>``, under its lock) so that it is trained
-    again. A run whose lock another process holds (training, resumed, extended) is a :class:`ConfigError`
-    whatever its configuration: it is never moved, replaced or resumed from here.
+    again (``move=False``: only checked, nothing moved). A run whose lock another process holds (training,
+    resumed, extended) is a :class:`ConfigError` whatever its configuration: it is never moved, replaced or
+    resumed from here.
     """
     stale = []
     for spec in specs:
@@ -177,7 +178,7 @@ def check_reuse(specs: Sequence[RunSpec], rerun: bool = False, log: Callable[[st
         diffs = config_differences(recorded, spec.config)
         if diffs:
             stale.append((spec, diffs))
-    if not stale:
+    if not stale or (rerun and not move):
         return
     if not rerun:
         spec, diffs = stale[0]
@@ -333,6 +334,7 @@ def run_all(
     returns: bool = True,
     on_end: Callable[[RunSpec, bool], Sequence[RunSpec]] | None = None,
     more: Callable[[], Sequence[RunSpec]] | None = None,
+    drop: Callable[[RunSpec], bool] | None = None,
 ) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
@@ -349,7 +351,8 @@ def run_all(
     (``ok``: it finished well; a run a signal stopped while the driver goes on is not ok), also for a run
     that is already finished when it comes up, and returns runs to make next, which go before every run
     still waiting; ``more()`` is called when a process is free and no run waits, and returns the next runs
-    (none: the queue is done).
+    (none: the queue is done); a waiting run for which ``drop(spec)`` is true is not started (its study
+    broke). Once a SIGTERM is noted no ``on_end`` is called: the driver stops.
     """
 
     def waiting(batch: Sequence[RunSpec]) -> list[tuple[RunSpec, list[str]]]:
@@ -381,6 +384,8 @@ def run_all(
                 if not pending:
                     break
                 spec, cmd = pending.pop(0)
+                if drop is not None and drop(spec):
+                    continue
                 log(f"start {spec.label} seed {spec.seed}: {' '.join(cmd[3:])}")
                 Path(spec.path).mkdir(parents=True, exist_ok=True)
                 # never through a link or into a file with other names (the run directory may be someone else's)
@@ -412,7 +417,7 @@ def run_all(
                     log(f"done {spec.label} seed {spec.seed}")
                     if on_done is not None:
                         on_done(spec)
-                if on_end is not None:
+                if on_end is not None and sigterm.signum is None:  # a noted SIGTERM: the driver stops, nothing ends
                     pending[:0] = waiting(on_end(spec, proc.returncode == 0))
             lines.show([spec for spec, _, _ in running])
     finally:
