@@ -864,23 +864,31 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
 )
 def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str, preset: str) -> None:
     """The system's preset's `best` (src/pimbrl/systems/SYSTEM.yaml, or the example's) is what tune-SYSTEM's report
-    writes, section for section."""
+    writes, section for section; where its `chosen_by` names later tuning studies that amend tune-SYSTEM (`pimbrl
+    study draft TUNING AMENDMENT...`), their entries replace tune-SYSTEM's, method for method."""
     import dataclasses
 
     from pimbrl.config import load_yaml
     from pimbrl.systems.presets import load_presets
 
     repo = Path(__file__).resolve().parents[1]
-    spec = dataclasses.replace(load_spec(repo / "benchmarks" / "pending" / f"tune-{system}.yaml"), reps=200)
-    report = study_report(spec, load_record(spec))
-    recipe = load_yaml(report.markdown.split("```yaml\n")[2].split("```")[0])
     best = load_presets(repo / preset)[1]["best"]
     assert f"tune-{system}" in best.chosen_by and "validation" in best.chosen_by
+    named = (re.sub(r"\.(yaml|json)$", "", t) for t in re.findall(r"\btune-[A-Za-z0-9+.\-]*[A-Za-z0-9+]", best.chosen_by))
+    studies = list(dict.fromkeys(named))  # tune-SYSTEM first, then the studies amending it, as chosen_by names them
+    assert studies[0] == f"tune-{system}"
+    recipe: dict[str, dict] = {"methods": {}, "agents": {}}
+    for name in studies:
+        spec = dataclasses.replace(load_spec(repo / "benchmarks" / "pending" / f"{name}.yaml"), reps=200)
+        report = study_report(spec, load_record(spec))
+        sections = load_yaml(report.markdown.split("```yaml\n")[2].split("```")[0])
+        for section in recipe:
+            recipe[section].update(sections.get(section) or {})
+        for key, value in spec.overrides.items():  # the budget every candidate ran with is the recipe's
+            if key != "eval_protocol":
+                assert best.settings.get(key) == value, key
     assert recipe["methods"] == {k: dict(v) for k, v in best.methods.items()}
     assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}
-    for key, value in spec.overrides.items():  # the budget every candidate ran with is the recipe's
-        if key != "eval_protocol":
-            assert best.settings.get(key) == value, key
 
 
 _CONFIRMATORY_SPECS = sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "confirmatory").glob("confirmatory-*.yaml"))
