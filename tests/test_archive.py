@@ -362,3 +362,18 @@ def test_a_confirmatory_study_restored_from_its_archive_starts_with_its_registra
     again = run_study(load_spec(path), repo / "fresh", archive=repo / "archive", status=False, log=lines.append)
     assert any(line.startswith("restored 1 finished run(s)") for line in lines)
     assert again["registration"]["registered"] == first["registration"]["registered"] and _finals(again) == _finals(first)
+
+
+def test_archiving_a_study_not_started_yet_says_so_and_one_without_registration_is_refused(tmp_path) -> None:
+    spec = load_spec(_spec(tmp_path))
+    root = tmp_path / "runs"
+    root.mkdir()
+    (root / "compare.lock").write_text("")  # a queued study's directory: locked by the queue, nothing in it yet
+    with pytest.raises(
+        ConfigError, match=r"study arch: not started in .*runs yet \(no registration, no run\): nothing to archive"
+    ):
+        archive_study(spec, root, tmp_path / "archive", plan_study(spec, root))
+    (root / "mfrl" / "seed0").mkdir(parents=True)  # a run made some other way: refused as before
+    with pytest.raises(ConfigError, match=r"holds no registration of study arch .*only runs made by `pimbrl study run`"):
+        archive_study(spec, root, tmp_path / "archive", plan_study(spec, root))
+    assert not (tmp_path / "archive").exists()

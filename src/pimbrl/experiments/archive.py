@@ -267,6 +267,8 @@ def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: 
     if not root.is_dir():
         raise ConfigError(f"study {spec.name}: no run directory {root} (give --run-dir, or run the study first)")
     here = _registration(root, spec)
+    if here is None and not any(os.path.lexists(r.path) for r in runs):  # e.g. a queued study the queue has not reached
+        raise ConfigError(f"study {spec.name}: not started in {root} yet (no registration, no run): nothing to archive")
     if here is None:
         raise ConfigError(
             f"{root} holds no registration of study {spec.name} (no {REGISTRATION_FILE}): only runs made by `pimbrl study "
