@@ -4,9 +4,9 @@
 #   benchmarks/commit_archives.sh [--every MINUTES] SPEC...      # from the repository root; Ctrl-C ends it
 #
 # Every MINUTES (default 10), for each SPEC, it runs `pimbrl study archive SPEC` (which says so and does
-# nothing else when the study has no run directory yet, or has not started in it: a queued study) and, where the archive (archive/<study name> beside
-# the spec) changed, commits that folder alone: "Archive: NAME N of TOTAL" (N the archived runs, TOTAL the
-# spec's runs). Nothing else in the working tree is staged or committed (paths are literal, not patterns).
+# nothing else when the study has no run directory yet, or has not started in it, as a queued study) and,
+# where the archive (archive/<study name> beside the spec) changed, commits that folder alone: "Archive:
+# NAME N of TOTAL" (N the archived runs, TOTAL the spec's runs). Nothing else in the working tree is staged or committed (paths are literal, not patterns).
 # The commit holds the archive's lock, the one `pimbrl study archive` and `pimbrl study run --keep-archive`
 # take, so it never commits a half-copied run; when another process holds it, or the commit fails, the
 # folder is unstaged again and left to the next round. `pimbrl study run SPEC --keep-archive` archives each
