@@ -9,7 +9,7 @@ import pytest
 
 from pimbrl.cli import main
 from pimbrl.config import ConfigError
-from pimbrl.experiments.engine import run_study
+from pimbrl.experiments.engine import QueuedStudy, run_studies, run_study
 from pimbrl.experiments.spec import load_spec
 from pimbrl.experiments.sweep import load_sweep, run_sweep
 from pimbrl.training.config import get_setting
@@ -59,12 +59,16 @@ def test_studies_and_sweeps_on_ray_give_what_local_processes_give(tmp_path, caps
     watchdog = watch_descendants()  # Ray's helpers end with this process, also a killed one
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        on_ray = run_study(spec, tmp_path / "ray", backend="ray", jobs=2, status=False, log=lambda m: None)
+        # a queue of two on Ray (one study after the other): the study, then a one-run study of its own
+        other = load_spec(_study_spec(tmp_path, name="other.yaml", seeds=[1]))
+        queue = [QueuedStudy(spec, tmp_path / "ray"), QueuedStudy(other, tmp_path / "ray-other")]
+        on_ray, other_record = run_studies(queue, backend="ray", jobs=2, status=False, log=lambda m: None)
         assert main(["sweep", sweep, "--run-dir", str(tmp_path / "sweep-ray"), "--cpus", "2"]) == 0
     finally:
         ray.shutdown()
         watchdog.stop()
     assert not local["failed"] and not on_ray["failed"] and len(local["runs"]) == len(on_ray["runs"]) == 2
+    assert other_record["study"] == "other" and [r["seed"] for r in other_record["runs"]] == [1]
     for a, b in zip(local["runs"], on_ray["runs"]):
         assert (a["arm"], a["seed"]) == (b["arm"], b["seed"])
         assert a["curve"]["return_mean"] == b["curve"]["return_mean"] and a["updates"] == b["updates"]
