@@ -564,7 +564,7 @@ def _status_reads_states_and_steps_but_no_return(path: Path, root: Path, capsys)
 
 def test_status_times_an_arm_with_no_finished_run_by_another_setting_of_its_method(tmp_path) -> None:
     from pimbrl.experiments.engine import plan_study
-    from pimbrl.experiments.progress import RunProgress, progress_lines
+    from pimbrl.experiments.progress import QueueTotals, RunProgress, progress_lines
 
     methods = {"lr-a": {"method": "mfrl", "overrides": {"agent.actor_lr": 1e-3}},
                "lr-b": {"method": "mfrl", "overrides": {"agent.actor_lr": 3e-3}},
@@ -573,8 +573,10 @@ def test_status_times_an_arm_with_no_finished_run_by_another_setting_of_its_meth
     runs = plan_study(spec, tmp_path / "root")
     progress = [RunProgress(r, "finished", r.config.total_steps, 120.0) if r.arm == "lr-a" else RunProgress(r, "not started", 0, None)
                 for r in runs]  # fmt: skip
-    estimate = next(line for line in progress_lines(spec, progress) if line.startswith("Estimate"))
+    totals = QueueTotals()
+    estimate = next(line for line in progress_lines(spec, progress, totals=totals) if line.startswith("Estimate"))
     assert estimate.startswith("Estimate: about 4 CPU-minutes left")  # lr-b's two runs at lr-a's 2 minutes
+    assert totals.left_s == 240.0 and totals.untimed == ["s (matched, mbrl)"]  # a queue's total adds the same
     assert "(lr-b timed by the finished runs of the other settings of their method and agent" in estimate
     assert "plus matched, mbrl, which no finished run times yet" in estimate  # other updates per step; another method
     horizons = {
@@ -584,8 +586,12 @@ def test_status_times_an_arm_with_no_finished_run_by_another_setting_of_its_meth
     spec = load_spec(_spec(tmp_path, name="c.yaml", methods=horizons, seeds=1, overrides={"eval_episodes": 2}))
     runs = plan_study(spec, tmp_path / "c")
     progress = [RunProgress(runs[0], "finished", 0, 600.0), RunProgress(runs[1], "not started", 0, None)]
-    estimate = next(line for line in progress_lines(spec, progress) if line.startswith("Estimate"))
+    estimate = next(line for line in progress_lines(spec, progress, totals=totals) if line.startswith("Estimate"))
     assert "plus h9, which no finished run times yet" in estimate  # a controller's cost follows its horizon
+    assert totals.line(2, 2) == (
+        "Queue of 2 studies: about 4 CPU-minutes left that finished runs time, 2 minutes at --jobs 2; "
+        "not timed yet: s (matched, mbrl); c (h9)."
+    )
 
 
 def test_status_counts_a_dpc_runs_gradient_steps(tmp_path, capsys) -> None:
@@ -989,6 +995,10 @@ def test_status_takes_several_specs_each_from_its_own_directory(tmp_path, capsys
     assert main(["study", "status", str(a), str(b)]) == 0
     out = capsys.readouterr().out
     assert "study a: no run directory runs/a yet" in out and "study b: no run directory runs/b yet" in out
+    assert out.rstrip().endswith(
+        "Queue of 2 studies: about 0 CPU-minutes left that finished runs time, 0 minutes at --jobs 1; not timed yet: "
+        "a (no run directory yet); b (no run directory yet)."
+    )
     assert main(["study", "status", str(a), str(b), "--run-dir", "x"]) == 2
     assert "own directory and archive: drop --run-dir, --archive" in capsys.readouterr().err
     assert main(["study", "plan", str(a), str(b)]) == 2

@@ -492,7 +492,8 @@ def _study_run_dir(spec_path: str, spec_name: str, given: str | None) -> Path:
     return Path("runs") / spec_name
 
 
-def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> None:
+def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None, totals: Any = None) -> None:
+    """One study's progress table and estimate (added to ``totals``, a ``QueueTotals``, when given)."""
     from .experiments.archive import plan_restore
     from .experiments.engine import plan_study
     from .experiments.progress import progress_lines, study_progress
@@ -515,8 +516,10 @@ def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None) -> Non
         )
     elif not root.is_dir():
         print(f"study {spec.name}: no run directory {root} yet (start it with `pimbrl study run`; or give --run-dir)")
+        if totals is not None:
+            totals.untimed.append(f"{spec.name} (no run directory yet)")
     else:
-        print("\n".join(progress_lines(spec, study_progress(spec, root, runs), jobs=jobs)))
+        print("\n".join(progress_lines(spec, study_progress(spec, root, runs), jobs=jobs, totals=totals)))
     for line in notes:
         print(line)
 
@@ -664,12 +667,17 @@ def _cmd_study(args: argparse.Namespace) -> int:
             raise ValueError(
                 "`pimbrl study status` with several specs reads each one's own directory and archive: drop --run-dir, --archive"
             )
+        from .experiments.progress import QueueTotals
+
+        totals = QueueTotals()
         for i, path in enumerate(args.specs):
             if i:
                 print()
             each = load_spec(path)
             each_root = _study_run_dir(path, each.name, None)
-            _study_status(each, each_root, args.jobs, _study_archive(args, each, each_root))
+            _study_status(each, each_root, args.jobs, _study_archive(args, each, each_root), totals)
+        print()
+        print(totals.line(len(args.specs), args.jobs))
         return 0
     if args.action == "run" and len(args.specs) > 1:
         return _study_queue(args, log)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..training.control_run import dpc_progress
@@ -20,7 +20,7 @@ from .engine import StudyRun, plan_study
 from .runner import dpc_steps_text
 from .spec import StudySpec
 
-__all__ = ["RunProgress", "progress_lines", "study_progress"]
+__all__ = ["QueueTotals", "RunProgress", "progress_lines", "study_progress"]
 
 #: a run's states, in the order the table lists them
 STATES = ("finished", "running", "interrupted", "not started", "unreadable")
@@ -113,8 +113,26 @@ def _minutes(seconds: float) -> str:
     return f"{seconds / 60:,.1f} min"
 
 
-def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int = 1) -> list[str]:
-    """A table per arm and an estimate of the compute left, as lines of text.
+@dataclass
+class QueueTotals:
+    """What several studies' estimates add up to (`pimbrl study status A B ...`): see :func:`progress_lines`."""
+
+    left_s: float = 0.0  # CPU-seconds left that finished runs time
+    untimed: list[str] = field(default_factory=list)  # "STUDY (arms no finished run times yet)"
+
+    def line(self, studies: int, jobs: int) -> str:
+        """``Queue of N studies: about X CPU-minutes left ...``."""
+        text = (
+            f"Queue of {studies} studies: about {self.left_s / 60:,.0f} CPU-minutes left that finished runs time, "
+            f"{self.left_s / 60 / max(jobs, 1):,.0f} minutes at --jobs {jobs}"
+        )
+        return text + (f"; not timed yet: {'; '.join(self.untimed)}." if self.untimed else ".")
+
+
+def progress_lines(
+    spec: StudySpec, progress: Sequence[RunProgress], jobs: int = 1, totals: QueueTotals | None = None
+) -> list[str]:
+    """A table per arm and an estimate of the compute left, as lines of text (added to ``totals`` if given).
 
     The table gives each arm's finished, running (with steps), interrupted and unstarted runs and the mean
     wall-clock of its finished runs. The estimate charges each unfinished run its arm's mean finished
@@ -189,6 +207,10 @@ def progress_lines(spec: StudySpec, progress: Sequence[RunProgress], jobs: int =
             f"; {len(copies)} seed{'s' if len(copies) != 1 else ''} of seed-free controllers left out: copied if their "
             "first two seeds agree (not with --no-replicas)"
         )
+    if totals is not None:
+        totals.left_s += left_s
+        if unknown:
+            totals.untimed.append(f"{spec.name} ({', '.join(unknown)})")
     bad = [p for p in progress if p.state == "unreadable"]
     lines += [f"Unreadable: {p.run.path}: {p.why}" for p in bad] + ([""] if bad else [])
     lines += [
