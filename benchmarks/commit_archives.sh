@@ -41,7 +41,8 @@ while true; do
         archive="$(dirname "$spec")/archive/$name"
         [[ -d "$archive" && -n "$(git status --porcelain -- "$archive")" ]] || continue
         n=$(find "$archive" -name config.json -not -path '*.copying*' | wc -l)
-        total=$("$pimbrl" study plan "$spec" 2>/dev/null | grep -c " seed [0-9]") || total="?"
+        # the plan's last line, "N runs of study NAME ...": its first word (a plan sentence may name a seed too)
+        total=$("$pimbrl" study plan "$spec" 2>/dev/null | tail -n 1 | grep -oE '^[0-9]+') || total="?"
         export -f commit
         flock -n "$archive" bash -c 'commit "$0" "$1"' "$archive" "Archive: $name $n of $total" \
             || echo "$archive: not committed this round (busy or git failed); the next round tries again" >&2
