@@ -866,7 +866,7 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
 @pytest.mark.parametrize(
     ("system", "preset"),
     [(name, f"src/pimbrl/systems/{name}.yaml") for name in ("burgers", "pendulum", "cartpole")]
-    + [("allen-cahn", "examples/allen_cahn.yaml")],
+    + [("allen-cahn", "examples/allen_cahn.yaml"), ("cg-burgers", "benchmarks/controlgym_burgers.yaml")],
 )
 def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str, preset: str) -> None:
     """The system's preset's `best` (src/pimbrl/systems/SYSTEM.yaml, or the example's) is what tune-SYSTEM's report
