@@ -89,9 +89,11 @@ def _median_of(stored: dict[str, Any], prefix: str) -> dict[str, Any]:
 
 def test_every_previous_study_has_a_spec() -> None:
     names = {p.stem for p in SPECS} | {p.stem for p in STUDIES.glob("*.yaml")}  # a legacy spec, or its rerun's
-    assert len(SPECS) >= 30
+    assert len(names) >= 30  # legacy specs shrink as their studies are run again through the engine
     for name in (
         "paper-burgers",  # burgers-compare run again (its legacy spec is a fixture)
+        "paper-pendulum",  # pendulum-compare run again
+        "paper-cartpole",  # cartpole-compare run again
         "ks-headline",
         "ks-selection",
         "partial-burgers-nu+30",
