@@ -10,7 +10,7 @@ import pytest
 from pimbrl.cli import main
 from pimbrl.config import ConfigError, load_yaml
 from pimbrl.experiments.draft import draft_confirmatory
-from pimbrl.experiments.report import load_record
+from pimbrl.experiments.report import load_record, study_report
 from pimbrl.experiments.spec import load_spec, parse_spec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -202,6 +202,17 @@ def test_an_amendment_s_methods_replace_the_first_study_s_and_the_rules_read_the
     }
     assert f"# mbrl: {mbrl_arms[-1]} 0 by tune-burgers-mbrl (" in text
     assert "tune-burgers and tune-burgers-mbrl's choices" in text
+    assert text.splitlines()[1] == (
+        "# Drafted by `pimbrl study draft` from tune-burgers and tune-burgers-mbrl's records; reviewed before it was committed."
+    )
+    assert "from tune-burgers's record;" in _draft("tune-burgers", tmp_path)[0].splitlines()[1]  # one study: its record
+    # the amendment's own report applies the rule to its methods alone (no model-free family), and says so
+    report = study_report(dataclasses.replace(amending, reps=200), {**record, "runs": runs}).markdown
+    assert "By the rule of docs/confirmatory.md among this study's methods alone, the best RL arm is mbrl (0)." in report
+    assert (
+        "By the rule of docs/confirmatory.md, the tuned model-free arm is"
+        in study_report(dataclasses.replace(spec, reps=200), record).markdown
+    )
     # the best RL arm by rule is now MBRL (IQM 0 against every other family's below it): H4 names it
     ids = {h.id: (h.better, h.than) for h in draft.hypotheses}
     assert ids["H4a"] == ("mpc", "mbrl") and ids["H4b"] == ("dpc", "mbrl")

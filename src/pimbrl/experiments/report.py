@@ -417,7 +417,10 @@ def _tuning_table(spec: StudySpec, chosen: dict[str, Any], rules: dict[str, str 
         return lines
     named = [f"the {what} is {f} ({chosen[f]['iqm'][chosen[f]['chosen']]:.4g})" for what, f in rules.items() if f]
     if named:
-        lines += ["", f"By the rule of docs/confirmatory.md, {' and '.join(named)}."]
+        # without a model-free family (a study amending another's tuning), the rule sees this study's methods
+        # alone; `pimbrl study draft TUNING AMENDMENT...` applies it to both studies' choices
+        among = "" if rules.get("tuned model-free arm") else " among this study's methods alone"
+        lines += ["", f"By the rule of docs/confirmatory.md{among}, {' and '.join(named)}."]
     lines += ["", "The choices as a confirmatory spec's arms, one per method (to paste under `methods:`):", "", "```yaml"]
     shared = _shared_overrides(spec)
     if shared:  # what every candidate ran with besides its own settings (e.g. a wrong prior): the spec needs it too
