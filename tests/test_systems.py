@@ -327,6 +327,24 @@ def test_two_declarations_cannot_share_an_id(vanderpol: str, tmp_path) -> None:
         import_systems([str(other)])
 
 
+def test_one_file_imported_as_a_module_and_by_its_path_declares_one_system(tmp_path, monkeypatch) -> None:
+    """`import my_systems` in a session, then a study's `imports: [my_systems.py]`: the same declaration again."""
+    (tmp_path / "twice_vdp.py").write_text(
+        "from tests.test_systems import VanDerPol\nfrom pimbrl.systems import declare\n\n\n"
+        "class TwiceVdP(VanDerPol):\n    pass\n\n\ndeclare(TwiceVdP, 'test/TwiceVdP-v0')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "twice_vdp", raising=False)
+    import_systems(["twice_vdp"])  # by module name: declared by the module's file
+    assert import_systems([str(tmp_path / "twice_vdp.py")]) == ["test/TwiceVdP-v0"]  # by path: the same file
+    assert resolve_env_id("test/TwiceVdP-v0") == "test/TwiceVdP-v0"
+    other = tmp_path / "elsewhere" / "twice_vdp.py"  # a file of the same name elsewhere is another declaration
+    other.parent.mkdir()
+    other.write_text((tmp_path / "twice_vdp.py").read_text())
+    with pytest.raises(SystemSpecError, match="test/TwiceVdP-v0 is already declared by"):
+        import_systems([str(other)])
+
+
 @pytest.mark.parametrize(
     ("attrs", "message"),
     [

@@ -151,6 +151,11 @@ _SYSTEMS: dict[str, System] = {}
 _ALIASES: dict[str, str] = {alias: env_id for env_id, (_, aliases, _) in BUILTIN.items() for alias in aliases}
 #: the origin given to systems registered while :func:`import_systems` runs a user's module
 _ORIGIN: list[str] = []
+#: the file each declared id was declared in (its --import's file, else its environment's module's), and the
+#: file an --import by path is loading: one file imported twice under two names (`import my_systems`, then
+#: a study's `imports: [my_systems.py]`) declares the same system twice, not two systems
+_DECLARED_IN: dict[str, str] = {}
+_LOADING: list[str] = []
 #: every registration, in order (what an import registered is read from it)
 _REGISTERED: list[str] = []
 
@@ -166,7 +171,8 @@ def register_builtin() -> None:
 def register(system: System) -> System:
     """Register ``system``: its Gymnasium id (single and vector environments) and its aliases.
 
-    Registering a system again under the same id replaces it (a module imported twice); a built-in id, an
+    Registering a system again under the same id replaces it (a module imported twice, or one file imported
+    by module name and again by its path); a built-in id, an
     id that another library registered with Gymnasium, or an alias another system holds, is a
     :class:`SystemSpecError`. Returns ``system``, with :attr:`System.origin` set to the ``--import`` that is
     running (else to the module of its environment) where the declaration left the default.
@@ -188,7 +194,9 @@ def register(system: System) -> System:
         if alias in registered and alias != system.id.lower():
             raise SystemSpecError(f"{system.id}: the alias {alias!r} is a registered Gymnasium id; choose another alias")
     old = _SYSTEMS.get(system.id)
-    if old is not None and old.origin != system.origin:
+    declared_in = _declaring_file(system)
+    same_file = declared_in is not None and _DECLARED_IN.get(system.id) == declared_in
+    if old is not None and old.origin != system.origin and not same_file:
         raise SystemSpecError(f"{system.id} is already declared by {old.origin}; two declarations cannot share an id")
     if old is not None:
         for alias in old.aliases:
@@ -202,6 +210,10 @@ def register(system: System) -> System:
         max_episode_steps=system.episode_steps,
     )
     _SYSTEMS[system.id] = system
+    if declared_in is not None:
+        _DECLARED_IN[system.id] = declared_in
+    else:
+        _DECLARED_IN.pop(system.id, None)
     for alias in system.aliases:
         _ALIASES[alias] = system.id
     _REGISTERED.append(system.id)
@@ -263,6 +275,15 @@ def _origin(text: str) -> Iterator[None]:
         _ORIGIN.pop()
 
 
+def _declaring_file(system: System) -> str | None:
+    """The file that declares ``system``: the file an --import by path is loading, else its env's module's."""
+    if _LOADING:
+        return _LOADING[-1]
+    module = sys.modules.get(getattr(system.env, "__module__", None) or "")
+    file = getattr(module, "__file__", None)
+    return str(Path(file).resolve()) if file else None
+
+
 def _module_from_file(path: Path) -> None:
     # one module per file: two files of the same name in different folders are two modules
     digest = hashlib.sha256(str(path).encode()).hexdigest()[:12]
@@ -272,11 +293,14 @@ def _module_from_file(path: Path) -> None:
         raise SystemSpecError(f"--import {path}: not a Python file Python can load")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
+    _LOADING.append(str(path))
     try:
         spec.loader.exec_module(module)
     except BaseException:
         sys.modules.pop(name, None)
         raise
+    finally:
+        _LOADING.pop()
 
 
 def import_systems(specs: Sequence[str]) -> list[str]:
