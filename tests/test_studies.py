@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 import math
 import os
@@ -27,6 +26,7 @@ from pimbrl.experiments.report import load_record, study_report
 from pimbrl.experiments.spec import load_spec, parse_spec
 from pimbrl.training import resolve_config
 from pimbrl.training.rundir import cpu_model
+from tests.test_external import needs_controlgym  # a study of controlgym's systems imports it: `.ci/run` runs those
 
 #: a run of a few seconds (Pendulum, MFRL or a two-step model fit)
 TINY = {
@@ -863,19 +863,12 @@ def test_a_tuning_report_names_the_rule_s_arms_and_writes_the_choices_as_the_con
     assert recipe["agents"] == {k: dict(v) for k, v in best.agents.items()}
 
 
-#: controlgym is a benchmark-only install (tests/test_external.py): a study of its systems imports it, so
-#: the README's suite skips those cases and `.ci/run`'s controlgym step runs them
-_needs_controlgym = pytest.mark.skipif(
-    importlib.util.find_spec("controlgym") is None, reason="controlgym is a benchmark-only install"
-)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("system", "preset"),
     [(name, f"src/pimbrl/systems/{name}.yaml") for name in ("burgers", "pendulum", "cartpole")]
     + [("allen-cahn", "examples/allen_cahn.yaml")]
-    + [pytest.param("cg-burgers", "benchmarks/controlgym_burgers.yaml", marks=_needs_controlgym)],
+    + [pytest.param("cg-burgers", "benchmarks/controlgym_burgers.yaml", marks=needs_controlgym)],
 )
 def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str, preset: str) -> None:
     """The system's preset's `best` (src/pimbrl/systems/SYSTEM.yaml, or the example's) is what tune-SYSTEM's report
@@ -909,6 +902,12 @@ def test_a_best_recipe_holds_its_tuning_report_s_recipe_sections(system: str, pr
 _CONFIRMATORY_SPECS = sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "confirmatory").glob("confirmatory-*.yaml"))
 
 
+def _imports_controlgym(path: Path) -> bool:
+    from pimbrl.config import load_yaml
+
+    return any("controlgym" in str(i) for i in load_yaml(path.read_text()).get("imports") or [])
+
+
 def _tuning_studies(path: Path) -> list[str]:
     """The tuning studies a registered spec's arms come from: those its draft's comment names (tune-X, then the
     studies amending it, `pimbrl study draft TUNING AMENDMENT...`), else tune-X alone (specs drafted by hand)."""
@@ -928,9 +927,8 @@ def test_a_registered_spec_names_its_tuning_studies_as_its_draft_wrote_them(tmp_
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "path",
-    [  # a spec of a controlgym system imports controlgym (its adapter), a benchmark-only install
-        pytest.param(p, id=p.stem, marks=[_needs_controlgym] if "controlgym" in p.read_text() else [])
-        for p in _CONFIRMATORY_SPECS
+    [  # a spec that imports controlgym's adapter needs controlgym, a benchmark-only install
+        pytest.param(p, id=p.stem, marks=[needs_controlgym] if _imports_controlgym(p) else []) for p in _CONFIRMATORY_SPECS
     ],
 )
 def test_every_registered_arm_is_its_tuning_report_s_entry(path: Path) -> None:

@@ -145,7 +145,8 @@ def draft_confirmatory(
 
     lines = [
         "# Pre-registered (docs/confirmatory.md): committed before its first run, never edited after it.",
-        f"# Drafted by `pimbrl study draft` from {_records(sources)}; reviewed before it was committed.",
+        f"# Drafted by `pimbrl study draft` from {sources}'s record{'s' if amendments else ''}; reviewed before it was "
+        "committed.",
         f"name: {name}",
         "kind: confirmatory",
         "question: >-",
@@ -413,11 +414,6 @@ def _plan(
         f"seeds: about {minutes:,.0f} CPU-minutes, {minutes / 2:,.0f} minutes with two processes (--jobs 2); "
         "resumed across sessions"
     )
-
-
-def _records(sources: str) -> str:
-    """``"A's record"``, or ``"A and B's records"`` for a study and its amendments."""
-    return f"{sources}'s record" + ("s" if " and " in sources else "")
 
 
 def _relative(path: str, folder: Path) -> str:
