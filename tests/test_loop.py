@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -100,3 +102,18 @@ def test_a_checkpoint_is_the_dict_of_the_components_states(tmp_path) -> None:
     state = run.run_dir.load_checkpoint()
     assert {"t", "streams", "collector", "real", "agent", "model", "logger", "schedule"} <= set(state)
     assert state["t"] == run.cfg.total_steps and state["model"]["trainer"]["steps"] == run.model.trainer.steps
+
+
+@pytest.mark.slow  # a few seconds: the whole suite runs it, the fast tier does not
+def test_a_checkpoint_falls_due_by_wall_clock_and_changes_nothing_the_run_learns(tmp_path) -> None:
+    """checkpoint_minutes makes a checkpoint due at the next episode end once that much wall time passed (a
+    kill then loses at most about that much of a slow run); writing it changes no number the run produces."""
+    by_clock = dataclasses.replace(_pendulum("mfrl"), checkpoint_every=100_000, checkpoint_minutes=1e-9)  # every end
+    by_steps = dataclasses.replace(by_clock, checkpoint_minutes=0.0)  # by steps only: none before the end
+    clock_events, clock_run = _run(by_clock, tmp_path / "clock")
+    steps_events, steps_run = _run(by_steps, tmp_path / "steps")
+    assert [t for name, t in clock_events if name == "checkpoint"] == [200, 400]  # episode ends before the last
+    assert [t for name, t in steps_events if name == "checkpoint"] == []
+    returns = [[row["return_mean"] for row in r.run_dir.evaluations.read()] for r in (clock_run, steps_run)]
+    assert len(returns[0]) == 2 and returns[0] == returns[1]
+    assert bool((clock_run.real.action == steps_run.real.action).all())

@@ -1111,9 +1111,15 @@ def _checkpoint_note(args: argparse.Namespace) -> str:
     if step is not None and run.run_dir.checkpoint_path.exists():
         return f"; the last checkpoint (step {step:,d}) is intact: `pimbrl resume {path}` continues from it"
     return (
-        f"; no checkpoint was written yet (the first is due at step {run.cfg.checkpoint_every:,d}): "
+        f"; no checkpoint was written yet (the first is due at step {run.cfg.checkpoint_every:,d}"
+        f"{_minutes_clause(run.cfg.checkpoint_minutes)}): "
         f"`pimbrl resume {path}` starts the run over"
     )
+
+
+def _minutes_clause(minutes: float) -> str:
+    """`` or after N minutes`` for a wall-clock checkpoint cadence (none for 0)."""
+    return f" or after {minutes:g} minutes, whichever comes first" if minutes > 0 else ""
 
 
 def _stdout_closed() -> bool:

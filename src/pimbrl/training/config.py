@@ -169,6 +169,12 @@ class TrainConfig:
     checkpoint_every: int = param(
         5_000, "real steps between checkpoints (taken at the next episode end)", [positive(), at_most(MAX_STEPS)]
     )
+    checkpoint_minutes: float = param(
+        10.0,
+        "wall-clock minutes after which a checkpoint is also due (taken at the next episode end), so a kill "
+        "loses at most about this much of a slow run; 0: by steps only",
+        [non_negative(), at_most(10_000)],
+    )
     log_every: int = param(1_000, "real steps between rows of metrics.csv", [positive(), at_most(MAX_STEPS)])
     threads: int = param(
         1,

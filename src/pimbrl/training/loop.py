@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,6 +118,8 @@ class Run:
     schedule: UpdateSchedule
     t: int = 0
     last_checkpoint_t: int = 0
+    #: ``time.monotonic()`` at the last checkpoint or at this process's start (not in checkpoints)
+    last_checkpoint_clock: float = dataclasses.field(default_factory=time.monotonic)
     #: the policy's wall seconds per control step at the last test evaluation (not in checkpoints: the final
     #: evaluation of every run measures it again)
     inference_s_per_step: float | None = None
@@ -211,9 +214,18 @@ class Run:
         self.schedule.load_state_dict(state["schedule"])
         torch.set_rng_state(state["torch_rng"])
 
+    def checkpoint_due(self) -> bool:
+        """Whether ``checkpoint_every`` real steps or ``checkpoint_minutes`` of wall time passed since the last one."""
+        cfg = self.cfg
+        if self.t - self.last_checkpoint_t >= cfg.checkpoint_every:
+            return True
+        minutes = cfg.checkpoint_minutes
+        return minutes > 0 and time.monotonic() - self.last_checkpoint_clock >= 60.0 * minutes
+
     def save_checkpoint(self) -> None:
         """Write the full state atomically (at an episode end, before the next reset)."""
         self.last_checkpoint_t = self.t
+        self.last_checkpoint_clock = time.monotonic()
         self.run_dir.save_checkpoint(self.state_dict())
 
     def summary(self) -> RunSummary:
@@ -328,8 +340,7 @@ def train(run: Run | ControlRun, on_event: EventHook | None = None, stop_on_sign
             if step.done:
                 end = run.collector.end_episode()
                 log.episode(run.t, end.episode, end.return_, end.length)
-                due = run.t - run.last_checkpoint_t >= cfg.checkpoint_every
-                if (due or stop.requested) and run.t < cfg.total_steps:
+                if (run.checkpoint_due() or stop.requested) and run.t < cfg.total_steps:
                     with log.timed("checkpoint"):
                         run.save_checkpoint()
                     event("checkpoint", run)
