@@ -17,7 +17,7 @@ from pimbrl.experiments import runner
 from pimbrl.experiments.runner import RunSpec, run_all
 from pimbrl.training import RunDirectory, RunStopped, create_run, open_run, resolve_config, train
 from pimbrl.training import loop as loop_module
-from pimbrl.training.stopping import StopRequest
+from pimbrl.training.stopping import StopRequest, TimeLimitReached
 
 from .settings import ENV_IDS, SMOKE_SETTINGS, TINY_SETTINGS, flags
 
@@ -158,3 +158,64 @@ def test_the_study_driver_passes_a_sigterm_on_and_a_child_that_gets_two_still_ch
     assert children[0].returncode == 143  # two SIGTERMs, one stop: it reached its "checkpoint"
     assert any(line.startswith("stopped mfrl seed 0 (exit code 143): the same command again resumes it") for line in lines)
     assert signal.getsignal(signal.SIGTERM) is before  # the driver's handler is gone with it
+
+
+def test_the_study_driver_stops_its_runs_with_a_checkpoint_at_its_time_limit(
+    tmp_path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    # the child stands in for `pimbrl train` (the same StopRequest): it trains until asked to stop, then exits 143
+    child = (
+        "import sys, time\n"
+        "from pimbrl.training.stopping import StopRequest\n"
+        "with StopRequest() as stop:\n"
+        "    deadline = time.monotonic() + 30\n"
+        "    while not stop.requested and time.monotonic() < deadline:\n"
+        "        time.sleep(0.01)\n"
+        "sys.exit(143 if stop.requested else 1)\n"
+    )
+    real_popen = subprocess.Popen
+    children: list[subprocess.Popen] = []
+
+    def popen(cmd, **kwargs):
+        children.append(real_popen([sys.executable, "-c", child], **kwargs))
+        return children[-1]
+
+    monkeypatch.setattr(runner.subprocess, "Popen", popen)
+    config = resolve_config(ENV_IDS["burgers"], SETTINGS)
+    specs = [RunSpec("mfrl", seed, tmp_path / f"seed{seed}", config) for seed in (0, 1)]
+    lines: list[str] = []
+    started = time.monotonic()
+    with pytest.raises(TimeLimitReached, match=r"time limit \(0.02 minutes\).*the same command again continues"):
+        run_all(specs, jobs=1, log=lines.append, status=False, time_limit=0.02)
+    assert time.monotonic() - started < 20  # stopped at the limit (1.2 s), not at the child's own 30 s
+    assert len(children) == 1 and children[0].returncode == 143  # asked to stop; the waiting run never started
+    assert any(line.startswith("time limit (0.02 minutes)") for line in lines)
+    assert any(line.startswith("stopped mfrl seed 0 (exit code 143)") for line in lines)
+    # and through the command line: exit status 124, one line that says the same command continues
+    children.clear()
+    spec = tmp_path / "s.yaml"
+    spec.write_text('{"systems": ["burgers"], "methods": ["mfrl"], "seeds": [0, 1]}')  # JSON is YAML
+    study = ["study", "run", str(spec), "--run-dir", str(tmp_path / "study"), "--time-limit", "0.02"]
+    assert main(study) == 124
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "pimbrl study: stopped at its time limit (0.02 minutes): every running run checkpointed at its next episode "
+        "end; the same command again continues"
+    )
+    assert len(children) == 1 and children[0].returncode == 143
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["status", "--time-limit", "5"], "--time-limit applies to study run, not status"),
+        (["run", "--time-limit", "0"], "the time limit must be a positive number of minutes, got 0.0"),
+        (["run", "--time-limit", "5", "--backend", "ray"], "a time limit applies to local processes, not to Ray"),
+    ],
+)
+def test_a_time_limit_the_driver_cannot_keep_is_refused_in_one_line(args, message, tmp_path, capsys) -> None:
+    spec = Path(__file__).parent.parent / "benchmarks" / "pending" / "tune-ks.yaml"
+    action, *rest = args
+    assert main(["study", action, str(spec), "--run-dir", str(tmp_path / "study"), *rest]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "study").exists()

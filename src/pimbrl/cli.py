@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import ConfigError, add_arguments, overrides_from_args
-from .training.stopping import RunStopped
+from .training.stopping import RunStopped, TimeLimitReached
 
 __all__ = ["build_parser", "main"]
 
@@ -542,6 +542,8 @@ def _archive_flag(args: argparse.Namespace, spec: Any) -> Path | None:
 
     if args.archive is not None and args.no_archive:
         raise ValueError("give --archive DIR or --no-archive, not both")
+    if args.time_limit is not None and args.action != "run":
+        raise ValueError(f"--time-limit applies to study run, not {args.action}")
     if args.keep_archive and args.action != "run":
         raise ValueError(f"--keep-archive applies to study run, not {args.action}")
     if args.action not in ("run", "status", "archive"):
@@ -636,7 +638,7 @@ def _study_queue(args: argparse.Namespace, log: Callable[[str], None]) -> int:
         archive = _study_archive(args, spec, root)
         keep = args.keep_archive
         queue.append(QueuedStudy(spec, root, rerun=args.rerun, replicas=not args.no_replicas, archive=archive, keep_archive=keep))
-    run_studies(queue, jobs=args.jobs, backend=args.backend, address=args.address, log=log)
+    run_studies(queue, jobs=args.jobs, backend=args.backend, address=args.address, log=log, time_limit=args.time_limit)
     failed = False
     for q in queue:  # each study's "runs recorded" line was logged as it ended
         record = q.record or {"failed": []}
@@ -712,6 +714,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         record = run_study(
             spec, root, jobs=args.jobs, backend=args.backend, address=args.address, rerun=args.rerun,
             replicas=not args.no_replicas, archive=archive, keep_archive=args.keep_archive, log=log,
+            time_limit=args.time_limit,
         )  # fmt: skip
         if record["failed"]:
             print(f"failed runs: {', '.join(record['failed'])}", file=sys.stderr)
@@ -971,6 +974,14 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--backend", choices=("local", "ray"), default="local", help="run: local processes or Ray tasks")
     st.add_argument("--address", default=None, help="run: address of an existing Ray cluster")
     st.add_argument("--rerun", action="store_true", help="run: move runs of another configuration aside and train them again")
+    st.add_argument(
+        "--time-limit",
+        type=float,
+        default=None,
+        metavar="MINUTES",
+        help="run: after this many minutes start no run and stop the running ones at their next episode end, "
+        "checkpointed (exit status 124; the same command again continues): for a batch job's allocation",
+    )
     _add_no_replicas(st, "run: ")
     st.add_argument(
         "--archive",
@@ -1211,6 +1222,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RunStopped as stopped:  # SIGTERM or SIGINT while training: checkpointed at the next episode end
         print(f"pimbrl {args.command}: {stopped}{_checkpoint_note(args)}", file=sys.stderr)
         return stopped.exit_status
+    except TimeLimitReached as reached:  # study run --time-limit: the runs checkpointed, the driver stopped
+        print(f"pimbrl {args.command}: {reached}", file=sys.stderr)
+        return 124
     except KeyboardInterrupt:
         print(f"pimbrl {args.command}: interrupted{_checkpoint_note(args)}", file=sys.stderr)
         return 130

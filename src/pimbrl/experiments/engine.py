@@ -19,6 +19,7 @@ import functools
 import hashlib
 import itertools
 import json
+import math
 import os
 import time
 import traceback
@@ -218,6 +219,7 @@ def run_study(
     archive: str | Path | None = None,
     keep_archive: bool = False,
     log: Callable[[str], None] = print,
+    time_limit: float | None = None,
 ) -> dict[str, Any]:
     """Train what is missing of ``spec`` in ``root`` and return (and write) its record.
 
@@ -229,14 +231,14 @@ def run_study(
     first run (:mod:`.registration`). ``archive``: a folder of the study's finished runs (:mod:`.archive`); each
     one whose directory does not exist here is copied back before the start, so that only the rest train. With
     ``keep_archive`` each run is copied into ``archive`` as it finishes, and every finished run at the end (a
-    copy that cannot be made is logged; the study goes on).
+    copy that cannot be made is logged; the study goes on). ``time_limit``: :func:`run_studies`'s.
     """
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be local or ray, got {backend!r}")
     queued = QueuedStudy(spec, root, rerun=rerun, replicas=replicas, archive=archive, keep_archive=keep_archive)
     if not run:
         return _write_record(spec, queued.runs, queued.root, [], run=False)
-    run_studies([queued], jobs=jobs, backend=backend, address=address, status=status, log=log)
+    run_studies([queued], jobs=jobs, backend=backend, address=address, status=status, log=log, time_limit=time_limit)
     assert queued.record is not None  # a study that ended has its record; one that did not raised
     return queued.record
 
@@ -438,6 +440,7 @@ def run_studies(
     address: str | None = None,
     status: bool = True,
     log: Callable[[str], None] = print,
+    time_limit: float | None = None,
 ) -> list[dict[str, Any]]:
     """Train a queue of studies, in order, and return their records (each written as its study ends).
 
@@ -447,10 +450,15 @@ def run_studies(
     process is free and no run of the studies before it waits, so no core waits for a study's slowest run;
     the runs a study adds later (seed-free copies that must train) go before the next study's. On Ray the
     studies run one after another. An error while one study is opened or recorded is logged, the queue goes
-    on, and the first such error is raised at the end.
+    on, and the first such error is raised at the end. ``time_limit``: minutes after which the running runs are
+    stopped with a checkpoint and :class:`~.runner.TimeLimitReached` is raised (local processes only).
     """
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be local or ray, got {backend!r}")
+    if time_limit is not None and backend != "local":
+        raise ConfigError("a time limit applies to local processes, not to Ray: drop --time-limit or --backend ray")
+    if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
+        raise ConfigError(f"the time limit must be a positive number of minutes, got {time_limit!r}")
     for i, q in enumerate(studies):
         for other in studies[:i]:
             if q.root.is_relative_to(other.root) or other.root.is_relative_to(q.root):
@@ -500,7 +508,7 @@ def run_studies(
             confirmatory = any(q.spec.kind == "confirmatory" for q in studies)  # then no line shows returns
             run_all(
                 [], jobs=jobs, log=log, status=status, returns=not confirmatory, on_end=ended, more=next_study,
-                drop=lambda s: owner[str(s.path)].broken,
+                drop=lambda s: owner[str(s.path)].broken, time_limit=time_limit,
             )  # fmt: skip
         for q in opened:  # every run ended, yet no record (not expected: a safety net): the record as the runs stand
             if q.record is None and q.is_open and not q.broken:

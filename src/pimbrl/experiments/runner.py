@@ -28,13 +28,14 @@ from ..training.config import TrainConfig, config_from_dict, config_to_dict
 from ..training.control_run import dpc_progress
 from ..training.methods import DPC
 from ..training.rundir import RunDirectory
-from ..training.stopping import take_signal
+from ..training.stopping import TimeLimitReached, take_signal
 
 __all__ = [
     "CHILD_LOG",
     "COMPARE_LOCK",
     "REQUEST_FILE",
     "RunSpec",
+    "TimeLimitReached",
     "check_reuse",
     "child_status",
     "config_differences",
@@ -335,6 +336,7 @@ def run_all(
     on_end: Callable[[RunSpec, bool], Sequence[RunSpec]] | None = None,
     more: Callable[[], Sequence[RunSpec]] | None = None,
     drop: Callable[[RunSpec], bool] | None = None,
+    time_limit: float | None = None,
 ) -> list[RunSpec]:
     """Train (or resume) every unfinished run, ``jobs`` processes at a time; returns the failed runs.
 
@@ -353,6 +355,10 @@ def run_all(
     still waiting; ``more()`` is called when a process is free and no run waits, and returns the next runs
     (none: the queue is done); a waiting run for which ``drop(spec)`` is true is not started (its study
     broke). Once a SIGTERM is noted no ``on_end`` is called: the driver stops.
+
+    ``time_limit``: minutes after which no run starts and every running child is sent SIGTERM, as if the driver
+    had got one; once they have ended (each at its next episode end, checkpointed) :class:`TimeLimitReached` is
+    raised. A batch job's allocation then ends with nothing lost.
     """
 
     def waiting(batch: Sequence[RunSpec]) -> list[tuple[RunSpec, list[str]]]:
@@ -372,8 +378,12 @@ def run_all(
     running: list[tuple[RunSpec, subprocess.Popen, Any]] = []
     lines = _StatusLines(status and (bool(pending) or more is not None), returns)
     sigterm = _SigtermFlag()
+    deadline = None if time_limit is None else time.monotonic() + 60.0 * time_limit
     try:
         while True:
+            if deadline is not None and time.monotonic() >= deadline and sigterm.signum is None:
+                log(f"time limit ({time_limit:g} minutes): the running runs are stopped at their next episode end")
+                sigterm.signum, sigterm.by_time_limit = signal.SIGTERM, True
             sigterm.forward(running)  # a safe point: every child started so far gets it, then the driver stops
             while len(running) < max(1, jobs):
                 while not pending and more is not None:  # a free process: the queue's next runs
@@ -420,6 +430,10 @@ def run_all(
                 if on_end is not None and sigterm.signum is None:  # a noted SIGTERM: the driver stops, nothing ends
                     pending[:0] = waiting(on_end(spec, proc.returncode == 0))
             lines.show([spec for spec, _, _ in running])
+    except KeyboardInterrupt:
+        if not sigterm.by_time_limit:
+            raise
+        raise TimeLimitReached(time_limit or 0.0) from None  # once the children ended (below)
     finally:
         sigterm.restore()
         lines.close()
@@ -475,6 +489,8 @@ class _SigtermFlag:
 
     def __init__(self) -> None:
         self.signum: int | None = None
+        #: the signal was set by :func:`run_all`'s time limit, not sent
+        self.by_time_limit = False
         self.previous: Any = take_signal(signal.SIGTERM, self._note)
 
     def _note(self, signum: int, frame: Any) -> None:

@@ -20,7 +20,7 @@ import threading
 from types import FrameType, TracebackType
 from typing import Any
 
-__all__ = ["STOP_SIGNALS", "RunStopped", "StopRequest", "take_signal"]
+__all__ = ["STOP_SIGNALS", "RunStopped", "StopRequest", "TimeLimitReached", "take_signal"]
 
 #: the signals that ask a run to stop at its next checkpoint
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
@@ -53,6 +53,21 @@ class RunStopped(Exception):  # noqa: N818 - not an error: the stop that was ask
     def exit_status(self) -> int:
         """128 + the signal's number, as a shell reports a command a signal ended (143 for SIGTERM)."""
         return 128 + self.signum
+
+
+class TimeLimitReached(Exception):  # noqa: N818 - not an error: the stop that was asked for
+    """A study's driver stopped at its time limit (``pimbrl study run --time-limit``).
+
+    Every running child was sent SIGTERM, checkpointed at its next episode end and has ended; the same command
+    again continues.
+    """
+
+    def __init__(self, minutes: float) -> None:
+        super().__init__(
+            f"stopped at its time limit ({minutes:g} minutes): every running run checkpointed at its next episode end; "
+            "the same command again continues"
+        )
+        self.minutes = minutes
 
 
 class StopRequest:
