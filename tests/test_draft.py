@@ -60,13 +60,16 @@ def test_h4_is_stated_against_every_rl_arm_and_h2_only_under_a_wrong_prior(tmp_p
 def test_fewer_seeds_for_the_other_arms_keep_every_hypothesis_decidable(tmp_path) -> None:
     text, draft = _draft("tune-burgers", tmp_path, seeds=5, other_seeds=3, total_steps=6000)
     seeds = {a.name: draft.seeds_of(a) for a in draft.arms}
-    # every arm of H1 and H3, the best RL arm (mfrl-matched), MPC, DPC and the best controller (MPC)
-    main_arms = {"mfrl-matched", "mbrl", "pimbrl", "known-scheme", "mpc", "dpc"}
+    # every arm of H1 and H3, the best RL arm (mfrl-matched), MPC, DPC, the best controller (MPC) and the paper's
+    # model-free baseline (TD3 at one update per real step)
+    main_arms = {"mfrl", "mfrl-matched", "mbrl", "pimbrl", "known-scheme", "mpc", "dpc"}
     assert {a for a, s in seeds.items() if len(s) == 5} == main_arms
     assert all(s == (100, 101, 102) for a, s in seeds.items() if a not in main_arms)
     for h in draft.hypotheses:  # none is inconclusive by the verdict rule's count of runs before it runs
         assert len(seeds[h.better]) >= 5 and len(seeds[h.than]) >= 5, h.id
     assert "H4a-crossq" not in {h.id for h in draft.hypotheses} and ("mpc", "crossq") in draft.comparisons
+    assert "H4a-mfrl" in {h.id for h in draft.hypotheses}  # the baseline runs every seed: its H4 pairs are decidable
+    assert "the paper's model-free baseline" in text
     assert draft.overrides["total_steps"] == 6000
     plan = " ".join(text.split())
     assert "RL arms scaled by 2 from the tuning runs' 3,000 steps to 6,000" in plan

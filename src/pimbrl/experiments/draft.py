@@ -8,6 +8,8 @@ its first run):
   them, with every candidate's IQM in a comment, and the tuning study's own overrides (a wrong prior, the
   budget) besides ``eval_protocol``;
 * fresh seeds (100 and up), ``holdout_episodes`` and ``outcome: holdout``; the tuning study's thresholds;
+  with fewer seeds for the other arms (KS), the full number for every arm a hypothesis names and for the
+  paper's model-free baseline (TD3 at the recipe's update ratio);
 * the hypotheses the protocol states for the families the tuning study has: H1a/H1b (PiMBRL against
   MBRL), H3 (known-scheme Dyna against the tuned model-free arm), H4a/H4b (MPC, DPC against the best RL arm
   by rule) with H4a-ARM/H4b-ARM against every other RL arm (the amendment after confirmatory-burgers), and
@@ -126,7 +128,7 @@ def draft_confirmatory(
     if threshold is not None and threshold not in thresholds:
         thresholds.append(threshold)
     roles = ("pimbrl", "mbrl", "known-scheme", "identified-scheme", "mpc", "dpc", "best controller",
-             "tuned model-free arm", "best RL arm")  # fmt: skip
+             "tuned model-free arm", "best RL arm", "model-free baseline")  # fmt: skip
     main = {str(arms[r]) for r in roles if arms[r]}
     few = other_seeds is not None and other_seeds < MIN_RUNS_FOR_VERDICT
     hypotheses = _hypotheses(spec.name, families, arms, threshold, set() if not few else main)
@@ -161,6 +163,8 @@ def draft_confirmatory(
     for fam in families:
         others = ", ".join(f"{a} {v:.4g}" for a, v in fam.candidates.items() if a != fam.arm.name)
         tags = [what for what, f in rules.items() if f == fam.name]
+        if other_list is not None and arms["model-free baseline"] == fam.name:  # why it runs every seed
+            tags.append("paper's model-free baseline")
         source = "" if fam.source == spec.name else f" by {fam.source}"
         lines.append(
             f"  # {fam.name}: {fam.arm.name} {fam.iqm:.4g}{source} ({others})" + (f"; the {' and '.join(tags)}" if tags else "")
@@ -305,6 +309,8 @@ def _protocol_arms(name: str, families: list[_Family], rules: dict[str, str | No
         arms[method] = found[0] if found else None
     controllers = [f for f in families if f.method in CONTROL_METHODS]
     arms["best controller"] = max(controllers, key=lambda f: f.iqm).name if controllers else None
+    baseline = [f.name for f in families if _is_model_free_baseline(f.arm)]
+    arms["model-free baseline"] = baseline[0] if len(baseline) == 1 else None
     arms["tuned model-free arm"] = None if partial else rules.get("tuned model-free arm")
     arms["best RL arm"] = None if partial else rules.get("best RL arm")
     if partial:  # under a wrong prior: H1 and H2 only (no controller with a wrong equation is in the protocol)
@@ -312,6 +318,14 @@ def _protocol_arms(name: str, families: list[_Family], rules: dict[str, str | No
     else:
         arms["identified-scheme"] = None
     return arms
+
+
+def _is_model_free_baseline(arm: Any) -> bool:
+    """Whether ``arm`` is the paper's MFRL: the method mfrl with the recipe's agent and update ratio.
+
+    That is TD3 at the recipe's updates per real step: not matched to the model-based budget, not CrossQ or REDQ.
+    """
+    return arm.method == "mfrl" and not arm.match_updates and not {"agent", "utd"} & set(arm.overrides)
 
 
 def _hypotheses(
