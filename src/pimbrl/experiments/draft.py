@@ -382,7 +382,7 @@ def _question(
     claims = "; ".join(f"{hid}: {h['claim']}" for hid, h in hypotheses.items())
     return (
         f"On {system}{wrong}, with each method's setting chosen on the validation draws by {sources} (equal "
-        f"budgets: {settings} settings x {seeds} seeds) and every run judged once on the "
+        f"budgets: {settings} settings x {seeds} seed{'s' if seeds != 1 else ''}) and every run judged once on the "
         f"first {episodes} states of the holdout pool, which of these claims hold? {claims}."
     )
 
