@@ -198,8 +198,8 @@ def test_the_study_driver_stops_its_runs_with_a_checkpoint_at_its_time_limit(
     study = ["study", "run", str(spec), "--run-dir", str(tmp_path / "study"), "--time-limit", "0.02"]
     assert main(study) == 124
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        "pimbrl study: stopped at its time limit (0.02 minutes): every running run checkpointed at its next episode "
-        "end; the same command again continues"
+        "pimbrl study: stopped at its time limit (0.02 minutes): each running run stopped at a checkpoint (an RL run "
+        "at its next episode end, a control run at its last saved stage); the same command again continues"
     )
     assert len(children) == 1 and children[0].returncode == 143
 

@@ -979,8 +979,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         metavar="MINUTES",
-        help="run: after this many minutes start no run and stop the running ones at their next episode end, "
-        "checkpointed (exit status 124; the same command again continues): for a batch job's allocation",
+        help="run: after this many minutes start no run and stop the running ones at a checkpoint (an RL run at its "
+        "next episode end); exit status 124, the same command again continues: for a batch job's allocation",
     )
     _add_no_replicas(st, "run: ")
     st.add_argument(

@@ -357,8 +357,8 @@ def run_all(
     broke). Once a SIGTERM is noted no ``on_end`` is called: the driver stops.
 
     ``time_limit``: minutes after which no run starts and every running child is sent SIGTERM, as if the driver
-    had got one; once they have ended (each at its next episode end, checkpointed) :class:`TimeLimitReached` is
-    raised. A batch job's allocation then ends with nothing lost.
+    had got one; once they have ended (an RL run at its next episode end, checkpointed; a control run at once,
+    back to its last saved stage) :class:`TimeLimitReached` is raised.
     """
 
     def waiting(batch: Sequence[RunSpec]) -> list[tuple[RunSpec, list[str]]]:

@@ -58,14 +58,15 @@ class RunStopped(Exception):  # noqa: N818 - not an error: the stop that was ask
 class TimeLimitReached(Exception):  # noqa: N818 - not an error: the stop that was asked for
     """A study's driver stopped at its time limit (``pimbrl study run --time-limit``).
 
-    Every running child was sent SIGTERM, checkpointed at its next episode end and has ended; the same command
-    again continues.
+    Every running child was sent SIGTERM and has ended: an RL run at its next episode end with a checkpoint, a
+    control run (feedback, MPC, DPC) at once, to resume from its last saved stage (DPC's last validation, MPC's
+    last finished chunk of episodes). The same command again continues.
     """
 
     def __init__(self, minutes: float) -> None:
         super().__init__(
-            f"stopped at its time limit ({minutes:g} minutes): every running run checkpointed at its next episode end; "
-            "the same command again continues"
+            f"stopped at its time limit ({minutes:g} minutes): each running run stopped at a checkpoint (an RL run at "
+            "its next episode end, a control run at its last saved stage); the same command again continues"
         )
         self.minutes = minutes
 
