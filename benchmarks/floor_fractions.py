@@ -37,6 +37,7 @@ CONFIRMATORY_STUDIES = {
     "pimbrl/Burgers-v0": "confirmatory-burgers",
     "pimbrl/Pendulum-v0": "confirmatory-pendulum",
     "pimbrl/CartPole-v0": "confirmatory-cartpole",
+    "example/AllenCahn-v0": "confirmatory-allen-cahn",  # the example system of examples/allen_cahn.py
 }
 #: the arms that are controllers, not RL methods
 CONTROLLERS = {"feedback", "mpc", "dpc"}

@@ -96,8 +96,11 @@ def study_records(root: Path = ROOT) -> dict[str, set[str]]:
             record = spec.get("record") if isinstance(spec.get("record"), dict) else None
             target = (path.parent / record["path"]).resolve() if record and "path" in record else results / f"{name}.json"
             if name and target.exists() and target.parent == results:
+                # a legacy record's select.include adds the runs of more records (beside it) to the study
+                select = record.get("select") if record and isinstance(record.get("select"), dict) else {}
+                included = [results / str(f) for f in select.get("include") or []]
                 for key in (name, slug(name), path.stem):  # the study's name, its anchor, its spec's file name
-                    out.setdefault(key, set()).add(target.name)
+                    out.setdefault(key, set()).update([target.name, *(f.name for f in included if f.exists())])
     return out
 
 

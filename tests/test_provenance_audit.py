@@ -65,8 +65,12 @@ def test_a_page_cites_records_by_file_name_by_study_name_and_by_quoted_timing(au
     studies = tmp_path / "benchmarks" / "studies"
     studies.mkdir()
     (studies / "legacy.yaml").write_text("name: legacy-study\nrecord:\n  path: ../results/legacy_compare.json\n")
-    (studies / "plus.yaml").write_text("name: partial-x+30\nrecord:\n  path: ../results/plus_old.json\n")
+    (studies / "plus.yaml").write_text(
+        "name: partial-x+30\nrecord:\n  path: ../results/plus_old.json\n"
+        "  select: {include: [plus_more.json, plus_missing.json]}\n"  # more runs from records beside it
+    )
     (results / "plus_old.json").write_text("{}")
+    (results / "plus_more.json").write_text("{}")
     for folder in ("confirmatory", "pending"):
         (tmp_path / "benchmarks" / folder).mkdir()
     # the same name pending again through the engine: while both records exist, a citation cites both
@@ -82,7 +86,13 @@ def test_a_page_cites_records_by_file_name_by_study_name_and_by_quoted_timing(au
     assert sorted(found) == ["README.md", "docs/a.md", "docs/b.md"]
     assert [lack.record for lack in found["docs/a.md"]] == ["legacy-study.json", "legacy_compare.json", "old.json"]
     # an anchor drops the "+"; a spec's file name cites its study
-    assert [lack.record for lack in found["docs/b.md"]] == ["legacy-study.json", "legacy_compare.json", "plus_old.json"]
+    # a record's select.include cites the records it names (one that does not exist is no record)
+    assert [lack.record for lack in found["docs/b.md"]] == [
+        "legacy-study.json",
+        "legacy_compare.json",
+        "plus_more.json",
+        "plus_old.json",
+    ]
     # 16 min 13 s lacks the hash; 1 min 1 s failed; 2 min 0 s has a qualifying entry of the same second
     assert [(lack.record, lack.missing) for lack in found["README.md"]] == [
         ("command_timings.json (its quoted entries)", ("spec hash",))
