@@ -9,8 +9,9 @@ measurement spec, the command and this script, with the SHA-256 of both (as benc
     python benchmarks/time_command.py readme-main-job --cwd /tmp/fresh --load "a study's two training processes" \
         -- 'python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/pimbrl compare burgers ...'
 
-Entries accumulate in benchmarks/results/command_timings.json (newest last); the command's own output goes to
-this process's stdout and stderr.
+Entries accumulate in benchmarks/results/command_timings.json (newest last); the command's own output (its
+stderr merged into its stdout) goes to this process's stdout as it comes, and the entry keeps its last
+non-empty line (``last_line``: for pytest, the counts of passed and skipped tests; since 2026-12-07).
 """
 
 from __future__ import annotations
@@ -81,7 +82,16 @@ def main(argv: list[str] | None = None) -> int:
     commit = _commit(cwd)
     start = time.time()
     t0 = time.perf_counter()
-    status = subprocess.run(command, shell=True, cwd=cwd).returncode
+    last_line = ""
+    with subprocess.Popen(
+        command, shell=True, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace"
+    ) as child:
+        assert child.stdout is not None
+        for line in child.stdout:  # passed through as it comes; the last non-empty one is kept
+            sys.stdout.write(line)
+            sys.stdout.flush()
+            last_line = line.strip() or last_line
+    status = child.returncode
     wall = time.perf_counter() - t0
     spec, digest = measurement_spec(command)
     entry = {
@@ -96,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         "started_unix": start,
         "wall_s": round(wall, 1),
         "exit_status": status,
+        "last_line": last_line,
     }
     entries = [*read_timings(), entry]
     RESULTS.mkdir(parents=True, exist_ok=True)

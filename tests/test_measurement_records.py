@@ -81,3 +81,9 @@ def test_a_command_timing_names_its_command_and_hash(monkeypatch, tmp_path) -> N
     text = (BENCHMARKS / "time_command.py").read_bytes()
     assert first["spec_sha256"] == hashlib.sha256(text + b"\0" + b"true").hexdigest()
     assert second["exit_status"] == 3 and second["spec_sha256"] != first["spec_sha256"]
+    # the command's last non-empty line of output (stderr too) is kept: for pytest, its counts
+    assert first["last_line"] == "" and second["last_line"] == ""
+    assert (
+        timer.main(["probe", "--cwd", str(BENCHMARKS.parent), "--load", "idle", "--", "echo a; echo '2 passed' >&2; echo"]) == 0
+    )
+    assert json.loads((tmp_path / "command_timings.json").read_text())[-1]["last_line"] == "2 passed"
