@@ -15,6 +15,10 @@ log and is not audited.
 
     python benchmarks/provenance_audit.py            # prints the table
     python benchmarks/provenance_audit.py --write    # also writes docs/provenance.md (tests check it is current)
+
+A commit a record names must be one of this repository's history (``commits_outside_history``; the test
+suite checks it in a full clone): a record made on a branch that was rebased before it merged names a
+commit that no longer exists, and says nothing about the code that made it.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -195,6 +200,44 @@ def render(found: dict[str, list[Lack]]) -> str:
     for record, (missing, cited_by) in sorted(by_record.items()):
         lines.append(f"| `{record}` | {', '.join(missing)} | {', '.join(sorted(cited_by))} |")
     return "\n".join(lines) + "\n"
+
+
+def _named_commits(value: object, found: set[str]) -> None:
+    """Every hexadecimal ``commit`` a record's JSON holds, at any depth (``+uncommitted changes`` cut off)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key == "commit" and isinstance(item, str):
+                head = item.split("+", 1)[0].strip()
+                if re.fullmatch(r"[0-9a-f]{7,40}", head):
+                    found.add(head)
+            else:
+                _named_commits(item, found)
+    elif isinstance(value, list):
+        for item in value:
+            _named_commits(item, found)
+
+
+def commits_outside_history(root: Path = ROOT) -> dict[str, list[str]] | None:
+    """Each record of benchmarks/results/ -> the commits it names that ``git rev-list HEAD`` does not hold.
+
+    ``None`` where the history cannot say: not a git checkout, or a shallow clone.
+    """
+
+    def git(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True)
+
+    shallow = git("rev-parse", "--is-shallow-repository")
+    if shallow.returncode != 0 or shallow.stdout.strip() != "false":
+        return None
+    history = git("rev-list", "HEAD").stdout.split()
+    out: dict[str, list[str]] = {}
+    for path in sorted((root / "benchmarks" / "results").glob("*.json")):
+        named: set[str] = set()
+        _named_commits(json.loads(path.read_text()), named)
+        unknown = sorted(c for c in named if not any(full.startswith(c) for full in history))
+        if unknown:
+            out[path.name] = unknown
+    return out
 
 
 def main() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import subprocess
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -107,3 +108,30 @@ def test_a_page_cites_records_by_file_name_by_study_name_and_by_quoted_timing(au
 def test_the_audit_page_is_current(audit) -> None:
     expected = audit.render(audit.audit())
     assert (ROOT / "docs" / "provenance.md").read_text() == expected, "run: python benchmarks/provenance_audit.py --write"
+
+
+def test_a_commit_a_record_names_must_be_in_the_history(audit, tmp_path) -> None:
+    def git(*args: str) -> str:
+        done = subprocess.run(["git", "-C", str(tmp_path), *args], capture_output=True, text=True, check=True)
+        return done.stdout.strip()
+
+    git("init", "-q")
+    (tmp_path / "a.txt").write_text("a\n")
+    git("add", "a.txt")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "a")
+    head = git("rev-parse", "HEAD")
+    results = tmp_path / "benchmarks" / "results"
+    results.mkdir(parents=True)
+    (results / "good.json").write_text(json.dumps({"machine": {"commit": head}, "runs": [{"commit": head[:7]}]}))
+    (results / "dirty.json").write_text(json.dumps({"commit": head[:10] + "+uncommitted changes"}))
+    (results / "rebased.json").write_text(json.dumps({"runs": [{"provenance": {"commit": "0123abc"}}, {"commit": "unknown"}]}))
+    assert audit.commits_outside_history(tmp_path) == {"rebased.json": ["0123abc"]}
+    (tmp_path / ".git").rename(tmp_path / "not-git")
+    assert audit.commits_outside_history(tmp_path) is None
+
+
+def test_every_commit_a_record_names_is_in_this_history(audit) -> None:
+    found = audit.commits_outside_history()
+    if found is None:
+        pytest.skip("not a full git clone: the history cannot say which commits exist")
+    assert found == {}, f"records naming commits outside this history (made on a rebased branch?): {found}"
