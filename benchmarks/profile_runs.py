@@ -5,7 +5,8 @@ env_step, model_train, model_check, imagine, agent_update, evaluate, select, che
 did not log is left out); this prints, per run
 directory, each phase's seconds and share of the total, the seconds per 1,000 real steps and the
 milliseconds per agent update, and the mean over the runs given. The remainder (``other``) is the loop's
-own bookkeeping: logging, batch assembly outside the timed phases.
+own bookkeeping: logging, batch assembly outside the timed phases. Each run's entry carries its own
+``provenance`` (the commit and CPU of the process that last trained it, from its ``config.json``).
 
 Timings of runs that shared the cores with others are those of a loaded machine; compare shares and
 ratios within one set of runs, not absolute seconds across sessions.
@@ -40,11 +41,14 @@ def profile(run_dir: Path) -> dict:
     updates = int(float(last["agent_updates"]))
     phases = {p: float(last[f"time/{p}_s"]) for p in PHASES if last.get(f"time/{p}_s") not in (None, "")}
     phases["other"] = max(wall - sum(phases.values()), 0.0)
-    config = json.loads((run_dir / "config.json").read_text())["config"]
+    written = json.loads((run_dir / "config.json").read_text())
+    config = written["config"]
     return {
         "run": str(run_dir),
         "method": config["method"],
         "env": config["env"],
+        # the machine and code the run itself trained on (its last process's), beside the record's own
+        "provenance": written.get("provenance"),
         "steps": steps,
         "agent_updates": updates,
         "wall_s": wall,

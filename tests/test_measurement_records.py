@@ -87,3 +87,25 @@ def test_a_command_timing_names_its_command_and_hash(monkeypatch, tmp_path) -> N
         timer.main(["probe", "--cwd", str(BENCHMARKS.parent), "--load", "idle", "--", "echo a; echo '2 passed' >&2; echo"]) == 0
     )
     assert json.loads((tmp_path / "command_timings.json").read_text())[-1]["last_line"] == "2 passed"
+
+
+def test_a_run_profile_names_the_runs_own_commit_and_cpu(monkeypatch, tmp_path) -> None:
+    monkeypatch.syspath_prepend(str(BENCHMARKS))  # the script imports _common from beside it
+    spec = importlib.util.spec_from_file_location("profile_runs_under_test", BENCHMARKS / "profile_runs.py")
+    assert spec is not None and spec.loader is not None
+    profiler = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(profiler)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.csv").write_text(
+        "step,wall_s,agent_updates,time/env_step_s,time/agent_update_s,time/evaluate_s\n"
+        "1000,50.0,4000,1.0,30.0,4.0\n2000,100.0,9000,2.0,80.0,8.0\n"
+    )
+    provenance = {"commit": "88d0b76", "cpu": "AMD EPYC"}
+    config = {"config": {"method": "mfrl", "env": "ks"}, "provenance": provenance}
+    (run / "config.json").write_text(json.dumps(config))
+    got = profiler.profile(run)
+    assert got["provenance"] == provenance and got["steps"] == 2000 and got["agent_updates"] == 9000
+    assert got["phase_s"] == {"env_step": 2.0, "agent_update": 80.0, "evaluate": 8.0, "other": 10.0}
+    assert got["phase_share"]["agent_update"] == pytest.approx(0.8)
+    assert got["s_per_1000_steps"] == pytest.approx(50.0) and got["ms_per_agent_update"] == pytest.approx(80000 / 9000)
