@@ -183,10 +183,15 @@ def test_the_paper_recipe_has_the_paper_s_values_and_best_names_its_study() -> N
     paper = resolve_config(pendulum, {"method": "pimbrl"}, preset="paper")
     assert paper.method.start_after == 6_000 and paper.method.physics.start_after == 12_000 and paper.utd == 1.0
     assert resolve_config(KS, {"method": "pimbrl"}, preset="paper").method.network == "convlstm"
-    best = recipe_of(KS, "best")
-    assert best.method == "known-scheme" and "EXPLORATORY" in best.chosen_by and "test states" in best.chosen_by
-    cfg = resolve_config(KS, {"seed": 3}, preset="best")
+    selection = recipe_of(KS, "selection")
+    assert selection.method == "known-scheme" and "EXPLORATORY" in selection.chosen_by and "test states" in selection.chosen_by
+    cfg = resolve_config(KS, {"seed": 3}, preset="selection")
     assert cfg.method.name == "known-scheme" and cfg.method.imagine.rollout_length == 25 and cfg.seed == 3
+    best = recipe_of(KS, "best")  # chosen on validation since tune-ks; the exploratory one kept as `selection`
+    assert best.method == "mpc" and "tune-ks" in best.chosen_by and "validation" in best.chosen_by
+    assert "EXPLORATORY" not in best.chosen_by
+    pimbrl = resolve_config(KS, {"method": "pimbrl"}, preset="best")
+    assert pimbrl.method.physics.weight == 0.1 and pimbrl.method.start_after == 1000 and pimbrl.total_steps == 60_000
     cartpole = recipe_of("pimbrl/CartPole-v0", "best")  # chosen on validation since tune-cartpole
     assert "tune-cartpole" in cartpole.chosen_by and cartpole.method == "feedback"
     with pytest.raises(ConfigError, match=r"^--preset fastest: pimbrl/CartPole-v0 has the recipes default, paper, best$"):
@@ -209,10 +214,10 @@ def test_burgers_best_recipe_holds_its_tuning_study_s_choices_as_the_confirmator
 
 
 def test_running_a_recipe_says_which_and_who_chose_it(capsys) -> None:
-    assert main(["train", "ks", "--preset", "best", "--print-config"]) == 0
+    assert main(["train", "ks", "--preset", "selection", "--print-config"]) == 0
     out = capsys.readouterr()
     assert json.loads(out.out)["method"]["name"] == "known-scheme"
-    assert "recipe best of pimbrl/KuramotoSivashinsky-v0" in out.err and "EXPLORATORY" in out.err
+    assert "recipe selection of pimbrl/KuramotoSivashinsky-v0" in out.err and "EXPLORATORY" in out.err
 
 
 def test_a_user_s_system_gets_its_preset_from_a_file_and_a_bad_one_is_one_line(tmp_path) -> None:
@@ -338,7 +343,7 @@ def test_old_configurations_map_to_the_commands_that_make_them_now() -> None:
     assert config_from_dict(old["burgers_pimbrl"]) == resolve_config(burgers, {"method": "pimbrl", "total_steps": 2000})
     assert config_from_dict(old["burgers_mfrl"]) == resolve_config(burgers, {"method": "mfrl", "total_steps": 2000})
     ks = config_from_dict(old["ks_known_scheme"])  # --method mbrl --dyna.model physics: the known scheme, named so
-    assert ks.method.name == "known-scheme" and ks == resolve_config(KS, {"seed": 0, "threads": 1}, preset="best")
+    assert ks.method.name == "known-scheme" and ks == resolve_config(KS, {"seed": 0, "threads": 1}, preset="selection")
     for cfg in map(config_from_dict, old.values()):  # written in the new form, read back the same
         assert config_from_dict(json.loads(json.dumps(config_to_dict(cfg)))) == cfg
 
@@ -435,13 +440,13 @@ def test_an_old_configuration_that_cannot_be_read_is_one_line(change: dict, mess
 
 
 def test_recipes_merge_the_user_s_keyword_arguments_and_keep_their_own_keys() -> None:
-    cfg = resolve_config(KS, {"env_kwargs": {"convection": 1.0}}, preset="best")
+    cfg = resolve_config(KS, {"env_kwargs": {"convection": 1.0}}, preset="selection")
     assert cfg.env_kwargs == {"pool_config": {"n_validation": 200}, "convection": 1.0}
     from pimbrl.systems.presets import Recipe
     from pimbrl.training.config import recipe_settings, return_scale_warnings, run_names
 
-    assert run_names(KS, {}, "best") == ("known-scheme", "td3") and run_names(KS, {"method": "mbrl"}, "best")[0] == "mbrl"
-    assert return_scale_warnings(resolve_config(KS, {}, preset="best"), "best") == []  # the recipe's own pool_config
+    assert run_names(KS, {}, "selection") == ("known-scheme", "td3") and run_names(KS, {"method": "mbrl"}, "selection")[0] == "mbrl"
+    assert return_scale_warnings(resolve_config(KS, {}, preset="selection"), "selection") == []  # the recipe's own pool_config
     with pytest.raises(ConfigError, match="method is chosen by the recipe's own 'method:' key"):
         recipe_settings(Recipe("r", settings={"method": "pimbrl"}), model_based=False)
 
@@ -468,13 +473,13 @@ def test_compare_and_sweep_start_from_a_named_recipe(tmp_path) -> None:
     from pimbrl.experiments.compare import plan_runs
     from pimbrl.experiments.sweep import load_sweep, plan_trials
 
-    specs = plan_runs(KS, ["known-scheme", "mfrl"], [0], tmp_path, {"total_steps": 100}, preset="best")
+    specs = plan_runs(KS, ["known-scheme", "mfrl"], [0], tmp_path, {"total_steps": 100}, preset="selection")
     by = {s.label: s.config for s in specs}
     assert by["known-scheme"].method.imagine.rollout_length == 25 and by["mfrl"].agent.gamma == 0.99
     sweep = tmp_path / "sweep.json"
-    sweep.write_text(json.dumps({"envs": ["ks"], "methods": ["known-scheme"], "seeds": [0], "preset": "best"}))
+    sweep.write_text(json.dumps({"envs": ["ks"], "methods": ["known-scheme"], "seeds": [0], "preset": "selection"}))
     (trial,) = plan_trials(load_sweep(sweep), tmp_path / "out")
-    assert trial.config == resolve_config(KS, {"method": "known-scheme", "seed": 0}, preset="best")
+    assert trial.config == resolve_config(KS, {"method": "known-scheme", "seed": 0}, preset="selection")
 
 
 # ---------------------------------------------------------------------------------- sweep trials (issue 30, in part)
@@ -616,7 +621,8 @@ def test_the_built_in_paper_and_best_recipes_extend_default_and_differ_only_wher
     default, paper = burgers["default"].for_method(True, "pimbrl"), burgers["paper"].for_method(True, "pimbrl")
     assert {k for k in default if default[k] != paper[k]} == {"utd"} and paper["utd"] == 1.0 and default["utd"] == 5.0
     ks = load_presets(ROOT / "src" / "pimbrl" / "systems" / "ks.yaml")[1]
-    assert ks["best"].extends == ""  # KS's best changes most settings: it is written out whole
+    assert ks["best"].extends == "default"
+    assert ks["selection"].extends == ""  # KS's selection changes most settings: it is written out whole
     ks_paper = resolve_config(KS, {"method": "pimbrl"}, preset="paper")
     assert ks_paper.total_steps == 200_000 and ks_paper.method.imagine.reward_quadrature == "path"
     assert ks_paper.method.fit.steps == 10 and ks_paper.method.finetune.at_return == -55.0  # from default
