@@ -445,7 +445,9 @@ def test_recipes_merge_the_user_s_keyword_arguments_and_keep_their_own_keys() ->
     from pimbrl.systems.presets import Recipe
     from pimbrl.training.config import recipe_settings, return_scale_warnings, run_names
 
-    assert run_names(KS, {}, "selection") == ("known-scheme", "td3") and run_names(KS, {"method": "mbrl"}, "selection")[0] == "mbrl"
+    assert (
+        run_names(KS, {}, "selection") == ("known-scheme", "td3") and run_names(KS, {"method": "mbrl"}, "selection")[0] == "mbrl"
+    )
     assert return_scale_warnings(resolve_config(KS, {}, preset="selection"), "selection") == []  # the recipe's own pool_config
     with pytest.raises(ConfigError, match="method is chosen by the recipe's own 'method:' key"):
         recipe_settings(Recipe("r", settings={"method": "pimbrl"}), model_based=False)
