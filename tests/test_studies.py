@@ -932,6 +932,31 @@ def test_a_registered_spec_names_its_tuning_studies_as_its_draft_wrote_them(tmp_
     assert _tuning_studies(_CONFIRMATORY_SPECS[0]) == [_CONFIRMATORY_SPECS[0].stem.replace("confirmatory-", "tune-", 1)]
 
 
+def _waiting_specs() -> list[Path]:
+    """The engine specs a queue may still run: benchmarks/pending/ and the registered ones without a record yet."""
+    from pimbrl.config import load_yaml
+
+    repo = Path(__file__).resolve().parents[1]
+    found = []
+    for path in sorted([*(repo / "benchmarks" / "pending").glob("*.yaml"), *_CONFIRMATORY_SPECS]):
+        record = load_yaml(path.read_text()).get("record") or {}
+        if record.get("format", "study") == "study" and not (path.parent / str(record.get("path", ""))).is_file():
+            found.append(path)
+    return found
+
+
+@pytest.mark.parametrize(
+    "path", [pytest.param(p, id=p.stem, marks=[needs_controlgym] if _imports_controlgym(p) else []) for p in _waiting_specs()]
+)
+def test_every_spec_waiting_in_the_queue_plans_every_run(path: Path, tmp_path) -> None:
+    """A queued study whose runs cannot be configured would stop the queue hours later: each one's runs resolve now."""
+    spec = load_spec(path)
+    runs = plan_study(spec, tmp_path)
+    settings = math.prod(len(v) for v in spec.grid.values())
+    expected = len(spec.systems) * settings * sum(len(arm.seeds or spec.seeds) for arm in spec.arms)
+    assert len(runs) == expected and len({r.path for r in runs}) == len(runs), path.name
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "path",
