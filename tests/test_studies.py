@@ -152,9 +152,22 @@ def test_a_study_runs_resumably_and_its_record_carries_provenance(tmp_path) -> N
         else:
             assert run["imagined_transitions"] == 0
     again: list[str] = []
+    files = {name: (tmp_path / "root" / name).read_bytes() for name in (RECORD_FILE, "study.json")}
     second = run_study(spec, tmp_path / "root", status=False, log=again.append)  # finished runs are not run again
     assert any("4 runs, 4 finished, 0 to run" in line for line in again) and not any(line.startswith("start") for line in again)
     assert [r["final_return"] for r in second["runs"]] == [r["final_return"] for r in record["runs"]]
+    # nothing trained, nothing started: the record (its collection's time and commit) and the starts stay as they were
+    assert {name: (tmp_path / "root" / name).read_bytes() for name in files} == files
+    (tmp_path / "root" / RECORD_FILE).write_text("{}")  # a record that differs is written again
+    run_study(spec, tmp_path / "root", status=False, log=again.append)
+    assert json.loads((tmp_path / "root" / RECORD_FILE).read_text())["runs"] == json.loads(files[RECORD_FILE])["runs"]
+    assert spec.path is not None
+    spec.path.write_text(spec.text + "# edited after its runs\n")  # another spec: its start is recorded, and its record
+    edited = load_spec(spec.path)
+    run_study(edited, tmp_path / "root", status=False, log=again.append)
+    seen = json.loads((tmp_path / "root" / "study.json").read_text())["spec_sha256_seen"]
+    assert seen == [spec.sha256, edited.sha256]
+    assert json.loads((tmp_path / "root" / RECORD_FILE).read_text())["spec_sha256"] == edited.sha256
     report = study_report(spec, record, figures_dir=tmp_path / "fig", link_base=tmp_path)
     group = report.stats["groups"]["pimbrl/Pendulum-v0 default"]
     assert group["arms"]["mfrl"]["mean"]["value"] == pytest.approx(

@@ -281,6 +281,7 @@ class QueuedStudy:
         self._log: Callable[[str], None] = print
         self._plan: Any = None  # the archive's restore plan, made by check()
         self.broken = False  # an error while it was restored, archived or recorded: its runs end, nothing else
+        self._trains = True  # whether this start found runs to train (a finished study's record is left as it was)
 
     def check(self, log: Callable[[str], None]) -> None:
         """Lock the directory and check what a start refuses, writing nothing (a queue checks every study first)."""
@@ -310,7 +311,7 @@ class QueuedStudy:
         ``[]`` when nothing is left to train (the record is written then).
         """
         from .archive import restore_study
-        from .registration import start_study
+        from .registration import REGISTRATION_FILE, start_study
         from .replicas import plan_replicas
 
         spec, root, log = self.spec, self.root, self._log
@@ -322,10 +323,12 @@ class QueuedStudy:
                 restored = restore_study(spec, root, self.archive, self.runs, None if self.rerun else self._plan)
                 if restored.copied or restored.passed:
                     log(restored.line("restored", self.archive))
-            start_study(spec, root, self.runs)  # after the checks: a start refused there is no start
+            todo = [r for r in self.runs if RunDirectory(r.path).status != "finished"]
+            self._trains = bool(todo)
+            if todo or not _seen_here(root / REGISTRATION_FILE, spec.sha256):  # a finished study run again starts nothing
+                start_study(spec, root, self.runs)  # after the checks: a start refused there is no start
             if spec.text:  # the spec as run, beside its runs (pimbrl study report DIR/study.yaml)
                 atomic_write_bytes(root / SPEC_FILE, spec.text.encode())
-            todo = [r for r in self.runs if RunDirectory(r.path).status != "finished"]
             on_ray = " on Ray" if todo and backend == "ray" else ""
             log(f"study {spec.name}: {len(self.runs)} runs, {len(self.runs) - len(todo)} finished, {len(todo)} to run{on_ray}")
             self._copies = plan_replicas(self.runs, todo) if self.replicas else {}
@@ -389,7 +392,8 @@ class QueuedStudy:
         try:
             if self.keep_archive and self.archive is not None:
                 self._keep(self.runs)  # the copies of seed-free runs, and any run the archive missed
-            self.record = _write_record(self.spec, self.runs, self.root, self.failed, run=True)  # under the lock
+            # under the lock; a study that trained nothing this time leaves a record of the same runs as it was
+            self.record = _write_record(self.spec, self.runs, self.root, self.failed, run=True, keep_same=not self._trains)
             self._log(f"study {self.spec.name}: {len(self.record['runs'])} runs recorded in {self.root / RECORD_FILE}")
         finally:
             self.close()
@@ -528,16 +532,52 @@ def _finished(q: QueuedStudy) -> list[RunSpec]:
     return []
 
 
-def _write_record(spec: StudySpec, runs: Sequence[StudyRun], root: Path, failed: list[str], run: bool) -> dict[str, Any]:
+def _seen_here(registration: Path, sha256: str) -> bool:
+    """Whether the registration at ``registration`` exists and has seen the spec of ``sha256`` start already."""
+    try:
+        data = json.loads(registration.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and sha256 in (data.get("spec_sha256_seen") or [data.get("spec_sha256")])
+
+
+#: what a record says of its collection, not of its runs: a record that differs only here is the same record
+_COLLECTION_KEYS = ("collected_unix", "provenance")
+
+
+def _same_record(path: Path, record: dict[str, Any]) -> bool:
+    """Whether the record at ``path`` holds what ``record`` does, but for when and by which commit it was collected."""
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    if not isinstance(old, dict):
+        return False
+    drop = set(_COLLECTION_KEYS)
+    new = json.loads(json.dumps({k: v for k, v in record.items() if k not in drop}))  # tuples as lists, as read back
+    return {k: v for k, v in old.items() if k not in drop} == new
+
+
+def _write_record(
+    spec: StudySpec, runs: Sequence[StudyRun], root: Path, failed: list[str], run: bool, keep_same: bool = False
+) -> dict[str, Any]:
+    """Collect ``spec``'s record and write it to ``root`` (and, after a run, to the path the spec names).
+
+    ``keep_same``: a file that already holds the same record (but for its collection's time and commit) is left
+    as it is, so that a finished study run again does not rewrite its committed record with another commit.
+    """
     record = collect_record(spec, runs, root)
     record["failed"] = failed
     if run or (root / RECORD_FILE).exists() or record["runs"]:
         root.mkdir(parents=True, exist_ok=True)
         text = (json.dumps(record, indent=1, allow_nan=False) + "\n").encode()
-        atomic_write_bytes(root / RECORD_FILE, text)
+        targets = [root / RECORD_FILE]
         if spec.record is not None and run:  # the copy the spec names (kept in the repository)
             spec.record.path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_bytes(spec.record.path, text)
+            targets.append(spec.record.path)
+        for target in targets:
+            if not (keep_same and _same_record(target, record)):
+                atomic_write_bytes(target, text)
     return record
 
 

@@ -1,7 +1,8 @@
 """Pre-registration: a confirmatory study's spec is committed before its first run, and stays as committed.
 
 When a study first runs in a directory, :func:`start_study` writes ``ROOT/study.json``: the spec's SHA-256
-and the time of the first start; every later start appends the SHA-256 it ran with when that differs. A
+and the time of the first start; every later start appends its time and SHA-256 (the study engine skips a
+start with nothing left to train whose spec this directory has already seen). A
 spec marked ``kind: confirmatory`` must be registered when its first run starts, else that start is
 refused with a one-line error: its bytes are those of a commit (read with ``git show``, whatever the index
 says), the only commit that ever changed the file (a spec edited after it was committed is a new spec, in
