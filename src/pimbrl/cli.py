@@ -504,9 +504,10 @@ def _study_status(spec: Any, root: Path, jobs: int, archive: Path | None, totals
         plan = plan_restore(spec, root, archive, runs)
         if plan.refusal is not None:
             notes.append(f"the archive {archive} is not restored here: {plan.refusal}")
-        elif plan.runs or plan.passed:
+        elif plan.runs or plan.carried or plan.passed:
             notes.append(
                 f"{len(plan.runs)} finished run(s) wait in the archive {archive} for `pimbrl study run` to copy them back"
+                + (f", and {len(plan.carried)} interrupted run(s) with their checkpoints, to resume" if plan.carried else "")
                 + (f"; {len(plan.passed)} left out there ({plan.passed[0]})" if plan.passed else "")
             )
     if not root.is_dir() and spec.record is not None and spec.record.path.is_file():
@@ -531,8 +532,8 @@ def _study_archive(args: argparse.Namespace, spec: Any, root: Path) -> Path | No
         inner, outer = archive.resolve(), root.resolve()
         if inner.is_relative_to(outer) or outer.is_relative_to(inner):
             raise ValueError(
-                f"the archive {archive} and the run directory {root} lie one inside the other (the run directory does not "
-                "outlive the machine, and an archive holds no checkpoint): give --archive DIR apart from it"
+                f"the archive {archive} and the run directory {root} lie one inside the other (the run directory need not "
+                "outlive the machine, the archive must): give --archive DIR apart from it"
             )
     return archive
 
@@ -546,6 +547,8 @@ def _archive_flag(args: argparse.Namespace, spec: Any) -> Path | None:
         raise ValueError(f"--time-limit applies to study run, not {args.action}")
     if args.keep_archive and args.action != "run":
         raise ValueError(f"--keep-archive applies to study run, not {args.action}")
+    if args.checkpoints and args.action != "archive":
+        raise ValueError(f"--checkpoints applies to study archive, not {args.action}")
     if args.action not in ("run", "status", "archive"):
         if args.archive is not None or args.no_archive:
             raise ValueError(f"--archive and --no-archive apply to study run, status and archive, not {args.action}")
@@ -655,8 +658,10 @@ def _cmd_study(args: argparse.Namespace) -> int:
 
     log = lambda m: print(m, flush=True)
     if args.action == "report" and args.pages:
-        if args.archive is not None or args.no_archive or args.keep_archive:
-            raise ValueError("--archive, --no-archive and --keep-archive apply to study run, status and archive, not report")
+        if args.archive is not None or args.no_archive or args.keep_archive or args.checkpoints:
+            raise ValueError(
+                "--archive, --no-archive, --keep-archive and --checkpoints apply to study run, status and archive, not report"
+            )
         specs = [load_spec(p) for p in args.specs]
         folders = dict.fromkeys(Path(p).resolve().parent for p in args.specs)  # the first holding the hand-written part
         header = next((f / "_reproduce.md" for f in folders if (f / "_reproduce.md").is_file()), None)
@@ -706,7 +711,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         from .experiments.archive import archive_study
 
         assert archive is not None
-        result = archive_study(spec, root, archive, plan_study(spec, root))
+        result = archive_study(spec, root, archive, plan_study(spec, root), checkpoints=args.checkpoints)
         print(result.line("archived", archive) + f" (commit it to keep it: git add {archive})")
         return 0
     if args.action == "run":
@@ -995,6 +1000,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--keep-archive",
         action="store_true",
         help="run: copy each run into the archive as it finishes (then commit the archive to keep it)",
+    )
+    st.add_argument(
+        "--checkpoints",
+        action="store_true",
+        help="archive: also carry each interrupted run with its checkpoint (xz-compressed), so that `study run` on "
+        "another machine resumes it where it stopped",
     )
     st.add_argument(
         "--out",

@@ -13,9 +13,12 @@ not exist yet (a run on this machine is never replaced). An archived run is neve
 files. The registration keeps the study's one first start: the archive's and the run directory's are
 merged (every start and every spec SHA-256 either has seen), and where they record different first starts,
 or where a run directory holds runs but no registration, nothing is copied either way. Every file is read
-without following a link and within its size bound, no checkpoint is kept or read, and each run is
+without following a link and within its size bound, no checkpoint is kept or read (but a carried one, below), and each run is
 assembled beside its target and renamed into place, so an interrupted copy leaves no half-made run. A
-restored run has no checkpoint: it can be reported, not resumed or evaluated again.
+restored finished run has no checkpoint: it can be reported, not resumed or evaluated again.
+
+With ``--checkpoints``, an interrupted run is carried too, checkpoint included, and comes back to resume
+where it stopped (:mod:`.carry`); archiving a run's finished copy removes its interrupted one.
 """
 
 from __future__ import annotations
@@ -23,15 +26,26 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..config import ConfigError
-from ..fileio import MAX_CSV_BYTES, MAX_JSON_BYTES, atomic_write_bytes, check_below, fsync_directory, read_below, strict_json
+from ..fileio import MAX_JSON_BYTES, atomic_write_bytes, check_below, read_below, strict_json
 from ..training.rundir import RunDirectory
+from .carry import (
+    INTERRUPTED,
+    carried_copy_why_not,
+    carry_run,
+    drop_carried,
+    interrupted_why_not,
+    load_carried,
+    recover_carried,
+    restore_carried,
+)
 from .registration import REGISTRATION_FILE
+from .runfiles import ARCHIVED, STAGING, copy_run_files, same_files
 from .runner import config_differences
 
 if TYPE_CHECKING:
@@ -48,72 +62,11 @@ __all__ = [
     "restore_study",
 ]
 
-#: a finished run's files that the archive keeps (the record and report read no others); no checkpoint
-ARCHIVED = (
-    "config.json",
-    "config.request.json",
-    "evaluations.csv",
-    "episodes.csv",
-    "metrics.csv",
-    "selection.csv",
-    "coefficients.json",
-    "control.json",
-    "holdout.json",
-)
-#: the suffix of a run being assembled beside its target
-STAGING = ".copying"
-
-
-def _bound(name: str) -> int:
-    return MAX_JSON_BYTES if name.endswith(".json") else MAX_CSV_BYTES
-
 
 def default_archive(spec: StudySpec) -> Path:
     """``archive/<study name>`` in the spec's folder (``archive/<study name>`` here for a spec without a file)."""
     folder = spec.path.parent if spec.path is not None else Path()
     return folder / "archive" / spec.name
-
-
-def copy_run_files(
-    source: Path,
-    target: Path,
-    names: Sequence[str] = ARCHIVED,
-    edit: Callable[[str, bytes], bytes] | None = None,
-) -> list[str]:
-    """Copy the regular files ``names`` of the run directory ``source`` to the new directory ``target``.
-
-    ``config.json`` must be there; the others are copied where they exist. ``edit(name, data)`` may change
-    a file's bytes on the way. Each file is read without following a link and within its size bound; the
-    copy is assembled in a hidden folder beside ``target`` and renamed into place (a crash leaves no
-    half-made run). Raises ``FileExistsError`` where ``target`` exists, ``FileNotFoundError`` without a
-    ``config.json``, :class:`~pimbrl.fileio.UnsafeFileError` for a link or an oversized file. Returns the
-    names copied.
-    """
-    if os.path.lexists(target):
-        raise FileExistsError(f"{target} exists")
-    parent = target.parent
-    parent.mkdir(parents=True, exist_ok=True)
-    staging = parent / f".{target.name}{STAGING}"
-    if os.path.lexists(staging):
-        shutil.rmtree(staging)
-    staging.mkdir()
-    copied = []
-    try:
-        for name in names:
-            try:
-                data = read_below(source, name, _bound(name))
-            except FileNotFoundError:
-                if name == "config.json":
-                    raise
-                continue
-            atomic_write_bytes(staging / name, edit(name, data) if edit is not None else data)
-            copied.append(name)
-        os.replace(staging, target)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    fsync_directory(parent)
-    return copied
 
 
 @dataclass
@@ -123,12 +76,17 @@ class ArchiveResult:
     copied: list[str] = field(default_factory=list)  # runs copied now
     kept: list[str] = field(default_factory=list)  # runs already there, the same files
     passed: list[str] = field(default_factory=list)  # runs left out, each with the reason
+    carried: list[str] = field(default_factory=list)  # interrupted runs copied (archive) or put back (restore) now
 
     def line(self, verb: str, where: Path) -> str:
         """One line for the user: ``verb`` is ``"archived"`` or ``"restored"``, ``where`` the archive."""
         text = f"{verb} {len(self.copied)} finished run(s) {'to' if verb == 'archived' else 'from'} {where}"
         if self.kept:
             text += f"; {len(self.kept)} already there"
+        if self.carried:
+            text += f"; {len(self.carried)} interrupted run(s) with their checkpoints" + (
+                ", to resume where they stopped" if verb == "restored" else ""
+            )
         if self.passed:
             text += f"; {len(self.passed)} left out ({self.passed[0]}" + (", ..." if len(self.passed) > 1 else "") + ")"
         return text
@@ -162,8 +120,9 @@ def _unregistered(archive: Path, runs: Sequence[StudyRun], root: Path) -> str | 
     if os.path.lexists(archive / REGISTRATION_FILE):
         return None
     for run in runs:
-        if os.path.lexists(archive / run.path.relative_to(root)):
-            return str(archive / run.path.relative_to(root))
+        for where in (archive, archive / INTERRUPTED):
+            if os.path.lexists(where / run.path.relative_to(root)):
+                return str(where / run.path.relative_to(root))
     return None
 
 
@@ -235,27 +194,17 @@ def _remove_staging(archive: Path, runs: Sequence[StudyRun], root: Path) -> None
         staging = archive / rel.parent / f".{rel.name}{STAGING}"
         if check_below(archive, staging.relative_to(archive), "directory") is not None:
             shutil.rmtree(staging)
-
-
-def _same_files(a: Path, b: Path) -> bool:
-    """Whether two run directories hold the same :data:`ARCHIVED` files, byte for byte."""
-    for name in ARCHIVED:
-        try:
-            left = read_below(a, name, _bound(name))
-        except FileNotFoundError:
-            left = None
-        try:
-            right = read_below(b, name, _bound(name))
-        except FileNotFoundError:
-            right = None
-        if left != right:
-            return False
-    return True
+        recover_carried(archive, str(rel))
 
 
 # ------------------------------------------------------------------ archive and restore
-def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun]) -> ArchiveResult:
+def archive_study(
+    spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun], checkpoints: bool = False
+) -> ArchiveResult:
     """Copy every finished run of ``runs`` (``spec``'s, planned in ``root``), and its registration, into ``archive``.
+
+    ``checkpoints``: also carry every interrupted run with its checkpoint (:func:`~.carry.carry_run`). A
+    finished run archived (now or before) loses its interrupted copy.
 
     Safe while the study runs: a run counts only when finished and held by no process. Everything is checked
     before anything is copied: the run directory's registration (it must be there, of this study, and of the
@@ -291,16 +240,20 @@ def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: 
         registration = check()  # again under the lock
         _remove_staging(archive, runs, root)
         result = ArchiveResult()
-        todo = []
+        todo, interrupted = [], []
         for run in runs:
             rel = str(run.path.relative_to(root))
-            if not run.path.is_dir() or _finished_run(run.path, run) is not None:
+            if not run.path.is_dir():
+                continue
+            if _finished_run(run.path, run) is not None:
+                if checkpoints and interrupted_why_not(run.path, run) is None:
+                    interrupted.append((run, rel))
                 continue
             target = archive / rel
             check_below(archive, rel, "directory")  # no link on the way into the archive
             if not target.exists():
                 todo.append((run, rel))
-            elif _same_files(run.path, target):
+            elif same_files(run.path, target):
                 result.kept.append(rel)
             else:
                 raise ConfigError(
@@ -311,6 +264,21 @@ def archive_study(spec: StudySpec, root: str | Path, archive: str | Path, runs: 
         for run, rel in todo:
             copy_run_files(run.path, archive / rel)
             result.copied.append(rel)
+        for rel in [*result.copied, *result.kept]:  # finished: an interrupted copy is out of date
+            drop_carried(archive, rel)
+        for run, rel in interrupted:
+            if _finished_run(archive / rel, run) is None:  # the archive holds it finished: nothing to carry
+                drop_carried(archive, rel)
+                continue
+            try:
+                done = carry_run(run.path, archive, rel, run)
+            except (OSError, ValueError) as exc:  # one damaged run is named; the finished runs are archived all the same
+                result.passed.append(f"{rel}: not carried ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})")
+                continue
+            if done == "copied":
+                result.carried.append(rel)
+            elif done != "kept":
+                result.passed.append(f"{rel}: its checkpoint is {done}")
     finally:
         os.close(fd)
     return result
@@ -321,6 +289,7 @@ class RestorePlan:
     """What :func:`restore_study` would do: the runs to copy back, those left out, and the registration to write."""
 
     runs: list[StudyRun] = field(default_factory=list)
+    carried: list[StudyRun] = field(default_factory=list)  # interrupted runs to put back with their checkpoints
     passed: list[str] = field(default_factory=list)
     registration: dict[str, Any] | None = None  # to write into the run directory (``None``: leave it)
     refusal: str | None = None  # why nothing can be restored into this run directory
@@ -350,13 +319,17 @@ def plan_restore(spec: StudySpec, root: str | Path, archive: str | Path, runs: S
         if os.path.lexists(run.path):
             continue
         rel = str(run.path.relative_to(root))
-        if check_below(archive, rel, "directory") is None:
-            continue
-        why = _finished_run(archive / rel, run)
+        why = _finished_run(archive / rel, run) if check_below(archive, rel, "directory") is not None else "no config.json"
         if why is None:
             plan.runs.append(run)
-        elif why != "no config.json":
+            continue
+        if why != "no config.json":
             plan.passed.append(f"{rel}: {why} there")
+        carried = carried_copy_why_not(archive, rel, run)
+        if carried is None:
+            plan.carried.append(run)
+        elif carried != "none":
+            plan.passed.append(f"{INTERRUPTED}/{rel}: {carried} there")
     if kept is None:
         return plan
     here = _registration(root, spec) if root.is_dir() else None
@@ -395,9 +368,15 @@ def restore_study(
     if plan.refusal is not None:
         raise ConfigError(plan.refusal)
     result = ArchiveResult(passed=list(plan.passed))
+    # every carried checkpoint decompressed and verified first: a damaged one is an error before anything is written
+    checkpoints = [load_carried(archive, str(run.path.relative_to(root))) for run in plan.carried]
     if plan.registration is not None:
         _write_registration(root, plan.registration)
     for run in plan.runs:
         copy_run_files(archive / run.path.relative_to(root), run.path)
         result.copied.append(str(run.path.relative_to(root)))
+    for run, checkpoint in zip(plan.carried, checkpoints, strict=True):
+        run.path.parent.mkdir(parents=True, exist_ok=True)
+        restore_carried(archive, str(run.path.relative_to(root)), run.path, checkpoint)
+        result.carried.append(str(run.path.relative_to(root)))
     return result

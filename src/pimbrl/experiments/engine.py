@@ -321,7 +321,7 @@ class QueuedStudy:
                 check_reuse([self._run_spec(r) for r in self.runs], rerun=True, log=log)
             if self.archive is not None:  # after --rerun moved runs aside their archived copies come back: planned again
                 restored = restore_study(spec, root, self.archive, self.runs, None if self.rerun else self._plan)
-                if restored.copied or restored.passed:
+                if restored.copied or restored.carried or restored.passed:
                     log(restored.line("restored", self.archive))
             todo = [r for r in self.runs if RunDirectory(r.path).status != "finished"]
             self._trains = bool(todo)
@@ -673,6 +673,7 @@ def _run_entry(run: StudyRun, root: Path, payload: dict[str, Any]) -> dict[str, 
         "validation_transitions": summary.get("validation_transitions"),
         "inference_s_per_step": summary.get("inference_s_per_step"),
         "provenance": payload.get("provenance"),
+        **({"resumed_on": payload["resumed_on"]} if payload.get("resumed_on") else {}),  # carried to other machines
         "replicate_of": _replica_source(payload),
         "feedback": _feedback_choice(run) if run.config.control else None,
         "curve": curve,

@@ -554,8 +554,11 @@ def _not_recorded(runs: list[dict[str, Any]], key: str) -> str:
 
 
 def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: str, link_base: str | Path | None) -> list[str]:
-    cpus = sorted({str((r.get("provenance") or {}).get("cpu")) for r in record["runs"] if r.get("provenance")})
-    commits = sorted({str((r.get("provenance") or {}).get("commit"))[:10] for r in record["runs"] if r.get("provenance")})
+    where = [  # a run's first start and every resume on another CPU model or commit
+        p for r in record["runs"] for p in [r.get("provenance"), *(r.get("resumed_on") or [])] if isinstance(p, dict)
+    ]
+    cpus = sorted({str(p.get("cpu")) for p in where})
+    commits = sorted({str(p.get("commit"))[:10] for p in where})
     prov = record.get("provenance") or {}
     spec_link = _relative(spec.path, link_base) if spec.path is not None else spec.name
     made_under = record.get("spec_sha256")
@@ -587,7 +590,7 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
     commit = ", ".join(c for c in commits if c != "None") or (
         str(prov.get("commit"))[:10] if prov.get("commit") else "not recorded"
     )
-    ids = sorted({str(r["provenance"]["cpu_id"]) for r in record["runs"] if (r.get("provenance") or {}).get("cpu_id")})
+    ids = sorted({str(p["cpu_id"]) for p in where if p.get("cpu_id")})
     if ids:  # a masked model name is told apart by its family, model, stepping and flags; "; " ends the field
         cpu += f" ({' / '.join(ids)})"
     if any(c != "None" for c in cpus):  # some runs name their CPU: say where others do not
@@ -596,6 +599,9 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
         commit += _not_recorded(record["runs"], "commit")
     copies = sum(1 for r in record["runs"] if r.get("replicate_of"))
     copied = f" ({copies} copied from a seed-free controller's first seed, checked against its second)" if copies else ""
+    moved = sum(1 for r in record["runs"] if r.get("resumed_on"))
+    if moved:  # bit for bit on one CPU model, not across two: say how many runs went on elsewhere
+        copied += f" ({moved} resumed on another CPU or commit than they began on; the lists name both)"
     lines.append(f"- **Runs**: {len(record['runs'])}{copied}; CPU: {cpu}; commit: {commit}.")
     protocols = {p for arm in spec.arms for p in setting_values(arm, spec.overrides, spec.grid, "eval_protocol", "test")}
     if protocols != {"test"}:

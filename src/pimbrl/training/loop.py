@@ -571,7 +571,8 @@ def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False
     """The run in ``path`` at its last checkpoint (from the start if it has none).
 
     To continue training, the run directory is locked (held until :func:`train` ends), stale temporary
-    files are removed, the logs are cut back to the checkpoint, and a run whose final checkpoint is
+    files are removed, the CPU model and commit it goes on with are added to ``resumed_on`` in ``config.json``
+    where they differ from those it last ran with, the logs are cut back to the checkpoint, and a run whose final checkpoint is
     there but whose ``config.json`` still says "running" (killed between the two) is marked finished.
     ``inspect_only`` loads the state without taking the lock or touching any file (for evaluation and
     figures, also of a run still in progress). Either way a run directory holding anything pimbrl does not
@@ -590,6 +591,8 @@ def open_run(path: str | Path, progress: bool = True, inspect_only: bool = False
             run_dir.check_entries(writing=True)  # under the lock, before anything is changed
             run_dir.remove_stale_temporaries()
         cfg = read_run_config(run_dir)
+        if not inspect_only and run_dir.status != "finished":  # resumed elsewhere: the record says where
+            run_dir.note_resume()
         if cfg.control:  # its stages are in control.json (a DPC policy's checkpoint is read by the run itself)
             control = ControlRun.build(cfg, run_dir, progress)
             control.load()

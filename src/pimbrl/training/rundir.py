@@ -46,6 +46,7 @@ import re
 import socket
 import stat
 import sys
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -809,6 +810,22 @@ class RunDirectory:
         logged = {int(float(r["step"])): float(r["imagined_total"]) for r in rows}
         return {"imagined_total": [logged.get(step) for step in steps]}
 
+    def note_resume(self) -> bool:
+        """Add this process's :func:`provenance` to ``resumed_on`` where its CPU (model, identity) or commit differs.
+
+        The last is the latest entry of ``resumed_on``, else the run's first ``provenance``. Returns whether an
+        entry was added; a run resumed where it last ran is left as it was.
+        """
+        payload = self.read_config()
+        resumed = list(payload.get("resumed_on") or [])
+        last = resumed[-1] if resumed else payload.get("provenance") or {}
+        here = provenance()
+        fields = ("cpu", "cpu_id", "commit")  # cpu_id: a masked model name is told apart by its family, flags, ...
+        if isinstance(last, dict) and all(last.get(k) == here[k] for k in fields):
+            return False
+        self.update_status(resumed_on=[*resumed, {**here, "unix": round(time.time(), 3)}])
+        return True
+
     def update_status(self, **fields: Any) -> None:
         """Set top-level ``fields`` of ``config.json`` (e.g. ``status``), keeping the rest."""
         payload = self.read_config()
@@ -920,6 +937,8 @@ _TOP_LEVEL: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("system", _string_map, "an object of strings"),
     # a seed-free controller's copy (pimbrl.experiments.replicas): its source and the probe it was checked against
     ("replicate_of", lambda v: _string_map(v) and "source" in v, "an object of strings naming its source"),
+    # where a resumed run went on, when that differs from where it last ran (a run carried to another machine)
+    ("resumed_on", lambda v: isinstance(v, list) and all(isinstance(e, dict) for e in v), "a list of objects"),
 )
 
 
