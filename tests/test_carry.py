@@ -154,3 +154,41 @@ def test_checkpoints_is_a_flag_of_study_archive_alone(tmp_path, capsys) -> None:
     _spec(tmp_path)
     assert main(["study", "status", str(tmp_path / "s.yaml"), "--checkpoints"]) == 2
     assert capsys.readouterr().err.strip() == "pimbrl study: error: --checkpoints applies to study archive, not status"
+
+
+@pytest.mark.slow  # two short MPC runs on Pendulum
+def test_an_interrupted_controller_is_carried_with_its_saved_chunks_and_finishes_as_if_never_stopped(
+    tmp_path, monkeypatch
+) -> None:
+    import pimbrl.training.control_run as control_run
+
+    mpc = {"eval_episodes": 6, "model.horizon": 5, "model.iterations": 2, "model.first_iterations": 3, "model.batch": 2}
+    body = {"name": "carry-mpc", "systems": ["pendulum"], "methods": {"mpc": {"method": "mpc"}}, "seeds": [0], "overrides": mpc}
+    (tmp_path / "s.yaml").write_text(json.dumps(body))
+    spec = load_spec(tmp_path / "s.yaml")
+    whole = run_study(spec, tmp_path / "whole", status=False, log=lambda m: None)
+    root, archive = tmp_path / "first", tmp_path / "archive"
+    runs = plan_study(spec, root)
+    start_study(spec, root, runs)
+    real_play, calls = control_run.play, {"n": 0}
+
+    def dying(*args, **kwargs):  # killed in its second chunk of two test episodes
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real_play(*args, **kwargs)
+
+    monkeypatch.setattr(control_run, "play", dying)
+    run = create_run(runs[0].config, runs[0].path, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        train(run)
+    monkeypatch.setattr(control_run, "play", real_play)
+    rel = str(runs[0].path.relative_to(root))
+    assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [rel]
+    carried = archive / INTERRUPTED / rel
+    assert not (carried / CHECKPOINT).exists() and json.loads((carried / "control.json").read_text())["test"]["chunks"]
+    assert json.loads((carried / "carried.json").read_text())["sha256"] is None
+    logs: list[str] = []
+    again = run_study(spec, tmp_path / "fresh", archive=archive, status=False, log=logs.append)
+    assert "1 interrupted run(s) with their checkpoints, to resume where they stopped" in logs[0]
+    assert again["runs"][0]["final_return"] == pytest.approx(whole["runs"][0]["final_return"], abs=1e-9)
