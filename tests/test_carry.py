@@ -192,3 +192,46 @@ def test_an_interrupted_controller_is_carried_with_its_saved_chunks_and_finishes
     again = run_study(spec, tmp_path / "fresh", archive=archive, status=False, log=logs.append)
     assert "1 interrupted run(s) with their checkpoints, to resume where they stopped" in logs[0]
     assert again["runs"][0]["final_return"] == pytest.approx(whole["runs"][0]["final_return"], abs=1e-9)
+
+
+def test_an_interrupted_dpc_run_is_carried_with_its_checkpoint_and_finishes_as_if_never_stopped(tmp_path, monkeypatch) -> None:
+    from pimbrl.control.dpc import DPCTrainer
+
+    dpc = {
+        "eval_episodes": 2,
+        "model.iterations": 6,
+        "model.validate_every": 2,
+        "model.horizon": 4,
+        "model.batch_size": 4,
+        "model.hidden": [8],
+        "model.validation_episodes": 2,
+    }
+    body = {"name": "carry-dpc", "systems": ["pendulum"], "methods": {"dpc": {"method": "dpc"}}, "seeds": [0], "overrides": dpc}
+    (tmp_path / "s.yaml").write_text(json.dumps(body))
+    spec = load_spec(tmp_path / "s.yaml")
+    whole = run_study(spec, tmp_path / "whole", status=False, log=lambda m: None)
+    root, archive = tmp_path / "first", tmp_path / "archive"
+    runs = plan_study(spec, root)
+    start_study(spec, root, runs)
+    real_step, calls = DPCTrainer.step, {"n": 0}
+
+    def dying(self):  # killed in its fifth gradient step: the checkpoint of step 4 is the last one saved
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(DPCTrainer, "step", dying)
+    with pytest.raises(KeyboardInterrupt):
+        train(create_run(runs[0].config, runs[0].path, progress=False))
+    monkeypatch.setattr(DPCTrainer, "step", real_step)
+    rel = str(runs[0].path.relative_to(root))
+    assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [rel]
+    manifest = json.loads((archive / INTERRUPTED / rel / "carried.json").read_text())
+    assert manifest["step"] == 4 and manifest["sha256"] is not None and (archive / INTERRUPTED / rel / CHECKPOINT).is_file()
+    logs: list[str] = []
+    again = run_study(spec, tmp_path / "fresh", archive=archive, status=False, log=logs.append)
+    assert "1 interrupted run(s) with their checkpoints, to resume where they stopped" in logs[0]
+    assert any(line.startswith("start dpc seed 0: resume ") for line in logs), logs  # from step 4, not from the start
+    assert json.loads((tmp_path / "fresh" / rel / "control.json").read_text())["dpc"]["steps"] == 6
+    assert again["runs"][0]["final_return"] == pytest.approx(whole["runs"][0]["final_return"], abs=1e-9)

@@ -33,7 +33,6 @@ from typing import TYPE_CHECKING, Any
 
 from ..config import ConfigError
 from ..fileio import MAX_JSON_BYTES, atomic_write_bytes, check_below, read_below, strict_json
-from ..training.rundir import RunDirectory
 from .carry import (
     INTERRUPTED,
     carried_copy_why_not,
@@ -45,8 +44,7 @@ from .carry import (
     restore_carried,
 )
 from .registration import REGISTRATION_FILE
-from .runfiles import ARCHIVED, STAGING, copy_run_files, same_files
-from .runner import config_differences
+from .runfiles import ARCHIVED, STAGING, copy_run_files, open_run_files, same_files
 
 if TYPE_CHECKING:
     from .engine import StudyRun
@@ -154,23 +152,17 @@ def _finished_run(directory: Path, run: StudyRun) -> str | None:
     A link or another special file there is an :class:`~pimbrl.fileio.UnsafeFileError` (never followed); a
     damaged file is a reason ("unreadable").
     """
-    for name in ARCHIVED:
-        check_below(directory, name)
-    rd = RunDirectory(directory)
-    try:
-        payload = rd.read_config()
-        result = rd.result()
-    except FileNotFoundError:
-        return "no config.json"
-    except ValueError as exc:
-        return f"unreadable ({str(exc).splitlines()[0]})"
+    opened = open_run_files(directory, run.config)
+    if isinstance(opened, str):
+        return opened
+    rd, payload = opened
     if payload.get("status") != "finished" or rd.holder() is not None:
         return "not finished"
-    if result is None:
-        return "no evaluation"
-    if config_differences(payload.get("config"), run.config):
-        return "another configuration"
-    return None
+    try:
+        result = rd.result()
+    except ValueError as exc:
+        return f"unreadable ({str(exc).splitlines()[0]})"
+    return "no evaluation" if result is None else None
 
 
 def _lock(archive: Path) -> int:

@@ -41,9 +41,8 @@ from ..fileio import (
     read_below,
     strict_json,
 )
-from ..training.rundir import CheckpointError, RunDirectory, unpack_checkpoint
-from .runfiles import ARCHIVED, copy_run_files, same_files
-from .runner import config_differences
+from ..training.rundir import CheckpointError, RunDirectory, load_checkpoint_bytes, unpack_checkpoint
+from .runfiles import ARCHIVED, copy_run_files, open_run_files, same_files
 
 if TYPE_CHECKING:
     from .engine import StudyRun
@@ -80,7 +79,7 @@ _STAGING, _OLD = ".carrying", ".old"
 class _Progress:
     """How far a run has come, as its checkpoint and saved stages say (not its logs, which may run ahead)."""
 
-    step: int  # the checkpoint's real steps (0 without one)
+    step: int  # the checkpoint's real steps, or a DPC run's gradient steps (0 without one)
     wall_s: float  # a control run's saved wall-clock (control.json), else 0
     sha256: str | None  # the checkpoint's checksum (its header), None without one
 
@@ -94,21 +93,14 @@ def interrupted_why_not(directory: Path, run: StudyRun) -> str | None:
     Worth carrying: a checkpoint (an RL or DPC run) or a control run's saved stages (``control.json``);
     a run stopped before either starts from nothing wherever it goes.
     """
-    for name in ARCHIVED:
-        check_below(directory, name)  # a link there is an UnsafeFileError, never followed
-    rd = RunDirectory(directory)
-    try:
-        payload = rd.read_config()
-    except FileNotFoundError:
-        return "no config.json"
-    except ValueError as exc:
-        return f"unreadable ({str(exc).splitlines()[0]})"
+    opened = open_run_files(directory, run.config)
+    if isinstance(opened, str):
+        return opened
+    rd, payload = opened
     if payload.get("status") == "finished":
         return "finished"
     if rd.holder() is not None:
         return "running"
-    if config_differences(payload.get("config"), run.config):
-        return "another configuration"
     has_checkpoint = check_below(directory, "checkpoints/latest.pt") is not None
     if not has_checkpoint and check_below(directory, "control.json") is None:
         return "no checkpoint yet"
@@ -129,8 +121,9 @@ def _source(directory: Path) -> tuple[_Progress, bytes | None]:
         data = read_below(directory, "checkpoints/latest.pt", MAX_CHECKPOINT_BYTES)
     except FileNotFoundError:
         return _Progress(0, _control_wall(directory), None), None
-    unpack_checkpoint(data, directory / "checkpoints" / "latest.pt")
-    step = int(RunDirectory(directory).load_checkpoint().get("t", 0))
+    state = load_checkpoint_bytes(data, directory / "checkpoints" / "latest.pt")
+    dpc = state.get("dpc")  # a DPC run's checkpoint counts its gradient steps; an RL run's, its real steps
+    step = int(dpc.get("steps", 0) if isinstance(dpc, dict) else state.get("t", 0))
     sha = data[: data.find(b"\n")].split(b" ")[-1].decode()
     return _Progress(step, _control_wall(directory), sha), data
 

@@ -12,10 +12,13 @@ import os
 import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
-from ..fileio import MAX_CSV_BYTES, MAX_JSON_BYTES, atomic_write_bytes, fsync_directory, read_below
+from ..fileio import MAX_CSV_BYTES, MAX_JSON_BYTES, atomic_write_bytes, check_below, fsync_directory, read_below
+from ..training.rundir import RunDirectory
+from .runner import config_differences
 
-__all__ = ["ARCHIVED", "STAGING", "copy_run_files", "same_files"]
+__all__ = ["ARCHIVED", "STAGING", "copy_run_files", "open_run_files", "same_files"]
 
 #: a finished run's files that the archive keeps (the record and report read no others); no checkpoint
 ARCHIVED = (
@@ -31,6 +34,27 @@ ARCHIVED = (
 )
 #: the suffix of a run being assembled beside its target
 STAGING = ".copying"
+
+
+def open_run_files(directory: Path, config: Any) -> tuple[RunDirectory, dict[str, Any]] | str:
+    """The run in ``directory`` and its ``config.json``, where it is a run of ``config``; else why not.
+
+    Why not: ``"no config.json"``, ``"unreadable (...)"`` or ``"another configuration"``. A link or another
+    special file among :data:`ARCHIVED` is an :class:`~pimbrl.fileio.UnsafeFileError` (never followed).
+    What the run's status must be is the caller's to check (the archive wants it finished, a carry not).
+    """
+    for name in ARCHIVED:
+        check_below(directory, name)
+    rd = RunDirectory(directory)
+    try:
+        payload = rd.read_config()
+    except FileNotFoundError:
+        return "no config.json"
+    except ValueError as exc:
+        return f"unreadable ({str(exc).splitlines()[0]})"
+    if config_differences(payload.get("config"), config):
+        return "another configuration"
+    return rd, payload
 
 
 def _bound(name: str) -> int:

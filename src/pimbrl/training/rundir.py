@@ -80,6 +80,7 @@ __all__ = [
     "RunLockedError",
     "atomic_write_bytes",
     "kernel_note",
+    "load_checkpoint_bytes",
     "pack_checkpoint",
     "package_versions",
     "steps_to_threshold",
@@ -886,25 +887,34 @@ class RunDirectory:
             raise
         except OSError as exc:
             raise CheckpointError(f"checkpoint {path} could not be read ({_first_line(exc)})") from None
-        payload = unpack_checkpoint(data, path)
-        try:
-            state = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
-        except pickle.UnpicklingError as exc:
-            found = re.search(r"GLOBAL ([\w.]+)", str(exc))
-            what = f" (it references {found.group(1)})" if found else ""
-            raise CheckpointError(
-                f"checkpoint {path} holds more than tensors and plain data{what} and is not loaded: pimbrl never "
-                "runs code from a checkpoint; delete it, or start a new run"
-            ) from None
-        except Exception as exc:
-            raise CheckpointError(f"checkpoint {path} could not be read ({_first_line(exc)})") from None
-        if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
-            version = state.get("version") if isinstance(state, dict) else None
-            raise CheckpointError(
-                f"checkpoint {path} has schema version {version!r}, expected {CHECKPOINT_VERSION}: it was written by "
-                "another version of pimbrl; continue the run with that version, or start a new run"
-            )
-        return state
+        return load_checkpoint_bytes(data, path)
+
+
+def load_checkpoint_bytes(data: bytes, path: str | os.PathLike) -> dict[str, Any]:
+    """A checkpoint file's bytes, verified (:func:`unpack_checkpoint`) and loaded as tensors and plain data only.
+
+    Raises :class:`CheckpointError` (one line, named after ``path``) for another format, a checksum mismatch,
+    anything but tensors and plain data (never unpickled as code) or a payload that cannot be read.
+    """
+    payload = unpack_checkpoint(data, path)
+    try:
+        state = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"GLOBAL ([\w.]+)", str(exc))
+        what = f" (it references {found.group(1)})" if found else ""
+        raise CheckpointError(
+            f"checkpoint {path} holds more than tensors and plain data{what} and is not loaded: pimbrl never "
+            "runs code from a checkpoint; delete it, or start a new run"
+        ) from None
+    except Exception as exc:
+        raise CheckpointError(f"checkpoint {path} could not be read ({_first_line(exc)})") from None
+    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
+        version = state.get("version") if isinstance(state, dict) else None
+        raise CheckpointError(
+            f"checkpoint {path} has schema version {version!r}, expected {CHECKPOINT_VERSION}: it was written by "
+            "another version of pimbrl; continue the run with that version, or start a new run"
+        )
+    return state
 
 
 def _is_number(value: Any) -> bool:
