@@ -235,3 +235,20 @@ def test_an_interrupted_dpc_run_is_carried_with_its_checkpoint_and_finishes_as_i
     assert any(line.startswith("start dpc seed 0: resume ") for line in logs), logs  # from step 4, not from the start
     assert json.loads((tmp_path / "fresh" / rel / "control.json").read_text())["dpc"]["steps"] == 6
     assert again["runs"][0]["final_return"] == pytest.approx(whole["runs"][0]["final_return"], abs=1e-9)
+
+
+@pytest.mark.slow  # one short Burgers run
+def test_a_carried_copy_of_a_run_the_spec_no_longer_plans_is_removed_and_said(tmp_path) -> None:
+    spec = _spec(tmp_path, total_steps=240)
+    root, archive = tmp_path / "first", tmp_path / "archive"
+    _stopped_at(spec, root, kill_at=70)
+    runs = plan_study(spec, root)
+    assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [RUN]
+    stale = archive / INTERRUPTED / "mfrl" / "seed7"  # as a spec planning seed 7 once carried it
+    shutil.copytree(archive / INTERRUPTED / RUN, stale)
+    assert archive_study(spec, root, archive, runs).dropped == []  # without --checkpoints nothing is removed
+    assert stale.is_dir()
+    result = archive_study(spec, root, archive, runs, checkpoints=True)
+    assert result.dropped == ["mfrl/seed7"] and not stale.exists()
+    assert "1 carried run(s) the spec no longer plans removed (mfrl/seed7)" in result.line("archived", archive)
+    assert (archive / INTERRUPTED / RUN / CHECKPOINT).is_file()  # the planned run's copy stays

@@ -42,6 +42,7 @@ from .carry import (
     load_carried,
     recover_carried,
     restore_carried,
+    unplanned_carried,
 )
 from .registration import REGISTRATION_FILE
 from .runfiles import ARCHIVED, STAGING, copy_run_files, open_run_files, same_files
@@ -75,6 +76,7 @@ class ArchiveResult:
     kept: list[str] = field(default_factory=list)  # runs already there, the same files
     passed: list[str] = field(default_factory=list)  # runs left out, each with the reason
     carried: list[str] = field(default_factory=list)  # interrupted runs copied (archive) or put back (restore) now
+    dropped: list[str] = field(default_factory=list)  # carried copies of runs the spec no longer plans, removed now
 
     def line(self, verb: str, where: Path) -> str:
         """One line for the user: ``verb`` is ``"archived"`` or ``"restored"``, ``where`` the archive."""
@@ -84,6 +86,12 @@ class ArchiveResult:
         if self.carried:
             text += f"; {len(self.carried)} interrupted run(s) with their checkpoints" + (
                 ", to resume where they stopped" if verb == "restored" else ""
+            )
+        if self.dropped:
+            text += (
+                f"; {len(self.dropped)} carried run(s) the spec no longer plans removed ({self.dropped[0]}"
+                + (", ..." if len(self.dropped) > 1 else "")
+                + ")"
             )
         if self.passed:
             text += f"; {len(self.passed)} left out ({self.passed[0]}" + (", ..." if len(self.passed) > 1 else "") + ")"
@@ -195,8 +203,10 @@ def archive_study(
 ) -> ArchiveResult:
     """Copy every finished run of ``runs`` (``spec``'s, planned in ``root``), and its registration, into ``archive``.
 
-    ``checkpoints``: also carry every interrupted run with its checkpoint (:func:`~.carry.carry_run`). A
-    finished run archived (now or before) loses its interrupted copy.
+    ``checkpoints``: also carry every interrupted run with its checkpoint (:func:`~.carry.carry_run`), and
+    remove the carried copies of runs not in ``runs``, which must then be the spec's whole plan: those are
+    runs the spec no longer plans (:func:`~.carry.unplanned_carried`). A finished run archived (now or
+    before) loses its interrupted copy.
 
     Safe while the study runs: a run counts only when finished and held by no process. Everything is checked
     before anything is copied: the run directory's registration (it must be there, of this study, and of the
@@ -271,6 +281,11 @@ def archive_study(
                 result.carried.append(rel)
             elif done != "kept":
                 result.passed.append(f"{rel}: its checkpoint is {done}")
+        if checkpoints:  # copies of runs the spec no longer plans: nothing would ever restore them
+            planned = {str(r.path.relative_to(root)) for r in runs}
+            for rel in unplanned_carried(archive, planned):
+                drop_carried(archive, rel)
+                result.dropped.append(rel)
     finally:
         os.close(fd)
     return result

@@ -59,6 +59,7 @@ __all__ = [
     "load_carried",
     "recover_carried",
     "restore_carried",
+    "unplanned_carried",
 ]
 
 #: the folder of an archive that holds interrupted runs (hidden: it is no arm of the study)
@@ -301,3 +302,23 @@ def restore_carried(archive: Path, rel: str, target: Path, checkpoint: bytes | N
         shutil.rmtree(staging, ignore_errors=True)
         raise
     fsync_directory(target.parent)
+
+
+def unplanned_carried(archive: Path, planned: set[str]) -> list[str]:
+    """The carried copies in ``archive`` (paths relative to the study) of runs not in ``planned``, sorted.
+
+    A copy is a folder below :data:`INTERRUPTED` that holds a :data:`MANIFEST`; links are not followed. Such a
+    copy is left by a run its spec no longer plans (a pending spec edited between two sessions): nothing
+    would ever restore it.
+    """
+    if check_below(archive, INTERRUPTED, "directory") is None:
+        return []
+    top = archive / INTERRUPTED
+    found = []
+    for folder, dirs, files in os.walk(top):  # os.walk follows no link to a directory
+        if MANIFEST in files:
+            rel = Path(folder).relative_to(top).as_posix()
+            if rel not in planned:
+                found.append(rel)
+            dirs.clear()
+    return sorted(found)
