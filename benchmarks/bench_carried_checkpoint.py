@@ -7,7 +7,7 @@ estimates without training that far: it trains each named arm's first planned ru
 steps (stopped as a time limit stops it, with a checkpoint), measures every part of the checkpoint raw and
 compressed as the carry compresses it, and extrapolates the replay buffers to their capacity (the networks
 and optimisers do not grow). The extrapolation assumes the late rows compress as the early ones do; the
-record gives the bound with the buffers not compressed at all beside it.
+record gives beside it the size with the buffers not compressed at all (the rest compressed on its own).
 
     python benchmarks/bench_carried_checkpoint.py benchmarks/confirmatory/confirmatory-ks.yaml \\
         pimbrl redq --steps 1600 --load "two study runs"
@@ -55,6 +55,19 @@ def _packed(value: Any) -> int:
     return len(lzma.compress(buf.getvalue(), preset=PRESET))
 
 
+def _without_buffers(state: dict) -> dict:
+    """``state`` with every replay buffer's rows left out (its counters kept)."""
+    out: dict = {}
+    for key, value in state.items():
+        if isinstance(value, dict) and {"size", "capacity", "data"} <= set(value):
+            out[key] = {k: v for k, v in value.items() if k != "data"}
+        elif isinstance(value, dict):
+            out[key] = _without_buffers(value)
+        else:
+            out[key] = value
+    return out
+
+
 def _buffers(state: dict, where: str = "") -> list[tuple[str, dict]]:
     """Every replay buffer in a checkpoint's state (a dict with ``size``, ``capacity`` and ``data``)."""
     found = []
@@ -69,7 +82,7 @@ def _buffers(state: dict, where: str = "") -> list[tuple[str, dict]]:
 
 def measure(spec_path: Path, arm: str, steps: int, folder: Path) -> dict:
     spec = load_spec(spec_path)
-    planned = [r for r in plan_study(spec, folder) if r.path.parts[-2] == arm]
+    planned = [r for r in plan_study(spec, folder) if r.arm == arm]
     if not planned:
         raise SystemExit(f"{spec_path} plans no arm {arm!r}")
     run = planned[0]
@@ -100,10 +113,10 @@ def measure(spec_path: Path, arm: str, steps: int, folder: Path) -> dict:
             }
         )
     rest_raw = len(raw) - sum(b["bytes"] for b in buffers)
-    rest_packed = packed - sum(b["packed"] for b in buffers)
+    rest_packed = _packed(_without_buffers(state))  # the networks, optimisers and counters, compressed alone
     full_raw = rest_raw + sum(b["row_bytes"] * b["capacity"] for b in buffers)
     full_packed = rest_packed + sum(b["packed"] * b["capacity"] / max(b["rows"], 1) for b in buffers)
-    full_bound = rest_packed + sum(b["row_bytes"] * b["capacity"] for b in buffers)
+    uncompressed_buffers = rest_packed + sum(b["row_bytes"] * b["capacity"] for b in buffers)
     return {
         "arm": arm,
         "steps": int(state.get("t", 0)),
@@ -113,7 +126,7 @@ def measure(spec_path: Path, arm: str, steps: int, folder: Path) -> dict:
         "buffers": buffers,
         "full_raw": int(full_raw),
         "full_packed_estimate": int(full_packed),
-        "full_packed_bound": int(full_bound),
+        "full_packed_buffers_uncompressed": int(uncompressed_buffers),
         "carried_if_under": MAX_CARRIED_BYTES,
     }
 
@@ -133,7 +146,8 @@ def main() -> None:
             mb = 1e6
             now = f"at {row['steps']:,} steps {row['checkpoint_bytes'] / mb:.1f} MB, xz {row['checkpoint_packed'] / mb:.1f} MB"
             full = f"full buffers {row['full_raw'] / mb:.0f} MB, xz about {row['full_packed_estimate'] / mb:.0f} MB"
-            bound = f"at most {row['full_packed_bound'] / mb:.0f} MB; carried under {MAX_CARRIED_BYTES / mb:.0f} MB"
+            plain = row["full_packed_buffers_uncompressed"] / mb
+            bound = f"{plain:.0f} MB with the buffers uncompressed; carried under {MAX_CARRIED_BYTES / mb:.0f} MB"
             print(f"{arm:>14}: {now}; {full} ({bound})")
     name = f"carried_checkpoint_{load_spec(args.spec).name}"
     print(f"recorded {_common.record(name, {'steps': args.steps, 'rows': rows}, load=args.load)}")

@@ -13,7 +13,7 @@ import pytest
 
 from pimbrl.cli import main
 from pimbrl.experiments import carry
-from pimbrl.experiments.archive import archive_study, plan_restore
+from pimbrl.experiments.archive import archive_study, plan_restore, restore_study
 from pimbrl.experiments.carry import CHECKPOINT, INTERRUPTED
 from pimbrl.experiments.engine import collect_record, plan_study, run_study
 from pimbrl.experiments.registration import start_study
@@ -229,10 +229,13 @@ def test_an_interrupted_dpc_run_is_carried_with_its_checkpoint_and_finishes_as_i
     assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [rel]
     manifest = json.loads((archive / INTERRUPTED / rel / "carried.json").read_text())
     assert manifest["step"] == 4 and manifest["sha256"] is not None and (archive / INTERRUPTED / rel / CHECKPOINT).is_file()
+    fresh = tmp_path / "fresh"
+    restored = restore_study(spec, fresh, archive, plan_study(spec, fresh))
+    assert restored.carried == [rel]
+    assert RunDirectory(fresh / rel).load_checkpoint()["dpc"]["steps"] == 4  # it goes on from step 4
     logs: list[str] = []
-    again = run_study(spec, tmp_path / "fresh", archive=archive, status=False, log=logs.append)
-    assert "1 interrupted run(s) with their checkpoints, to resume where they stopped" in logs[0]
-    assert any(line.startswith("start dpc seed 0: resume ") for line in logs), logs  # from step 4, not from the start
+    again = run_study(spec, fresh, archive=archive, status=False, log=logs.append)
+    assert any(line.startswith("start dpc seed 0: resume ") for line in logs), logs
     assert json.loads((tmp_path / "fresh" / rel / "control.json").read_text())["dpc"]["steps"] == 6
     assert again["runs"][0]["final_return"] == pytest.approx(whole["runs"][0]["final_return"], abs=1e-9)
 
@@ -244,11 +247,28 @@ def test_a_carried_copy_of_a_run_the_spec_no_longer_plans_is_removed_and_said(tm
     _stopped_at(spec, root, kill_at=70)
     runs = plan_study(spec, root)
     assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [RUN]
-    stale = archive / INTERRUPTED / "mfrl" / "seed7"  # as a spec planning seed 7 once carried it
-    shutil.copytree(archive / INTERRUPTED / RUN, stale)
-    assert archive_study(spec, root, archive, runs).dropped == []  # without --checkpoints nothing is removed
+    top = archive / INTERRUPTED
+    stale = top / "mfrl" / "seed7"  # as a spec planning seed 7 once carried it
+    shutil.copytree(top / RUN, stale)
+    # what is no copy of an unplanned run: manifests on the way to the planned run, a killed carry's staging,
+    # a linked folder, a copy nested deeper than the plan's runs
+    manifest = (top / RUN / "carried.json").read_bytes()
+    (top / "carried.json").write_bytes(manifest)
+    (top / "mfrl" / "carried.json").write_bytes(manifest)
+    shutil.copytree(top / RUN, top / "mfrl" / ".seed8.carrying")
+    (top / "mfrl" / "seed9").symlink_to(top / RUN, target_is_directory=True)
+    shutil.copytree(top / RUN, top / RUN / "deeper")
+    assert archive_study(spec, root, archive, runs, checkpoints=True).dropped == []  # only with drop_unplanned
     assert stale.is_dir()
-    result = archive_study(spec, root, archive, runs, checkpoints=True)
+    result = archive_study(spec, root, archive, runs, checkpoints=True, drop_unplanned=True)
     assert result.dropped == ["mfrl/seed7"] and not stale.exists()
     assert "1 carried run(s) the spec no longer plans removed (mfrl/seed7)" in result.line("archived", archive)
-    assert (archive / INTERRUPTED / RUN / CHECKPOINT).is_file()  # the planned run's copy stays
+    assert (top / RUN / CHECKPOINT).is_file() and (top / RUN / "deeper").is_dir()  # the planned run's copy stays
+    assert (top / "mfrl" / "seed9").is_symlink() and (top / "mfrl" / "carried.json").is_file()
+    # the command line removes them (its plan is the spec's whole plan)
+    shutil.copytree(top / RUN, stale)
+    assert (
+        main(["study", "archive", str(tmp_path / "s.yaml"), "--run-dir", str(root), "--archive", str(archive), "--checkpoints"])
+        == 0
+    )
+    assert not stale.exists() and (top / RUN / CHECKPOINT).is_file()

@@ -711,7 +711,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
         from .experiments.archive import archive_study
 
         assert archive is not None
-        result = archive_study(spec, root, archive, plan_study(spec, root), checkpoints=args.checkpoints)
+        result = archive_study(
+            spec, root, archive, plan_study(spec, root), checkpoints=args.checkpoints, drop_unplanned=args.checkpoints
+        )
         print(result.line("archived", archive) + f" (commit it to keep it: git add {archive})")
         return 0
     if args.action == "run":
@@ -1005,7 +1007,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--checkpoints",
         action="store_true",
         help="archive: also carry each interrupted run with its checkpoint (xz-compressed), so that `study run` on "
-        "another machine resumes it where it stopped",
+        "another machine resumes it where it stopped; carried copies of runs the spec no longer plans are removed",
     )
     st.add_argument(
         "--out",

@@ -18,7 +18,8 @@ assembled beside its target and renamed into place, so an interrupted copy leave
 restored finished run has no checkpoint: it can be reported, not resumed or evaluated again.
 
 With ``--checkpoints``, an interrupted run is carried too, checkpoint included, and comes back to resume
-where it stopped (:mod:`.carry`); archiving a run's finished copy removes its interrupted one.
+where it stopped (:mod:`.carry`); archiving a run's finished copy removes its interrupted one, and the
+carried copies of runs the spec no longer plans are removed (the line names them).
 """
 
 from __future__ import annotations
@@ -158,7 +159,8 @@ def _finished_run(directory: Path, run: StudyRun) -> str | None:
     """``None`` where ``directory`` holds a finished run of ``run``'s configuration with evaluations; else why not.
 
     A link or another special file there is an :class:`~pimbrl.fileio.UnsafeFileError` (never followed); a
-    damaged file is a reason ("unreadable").
+    damaged ``config.json`` is a reason ("unreadable"), as is another configuration, checked first
+    (:func:`~.runfiles.open_run_files`); then "not finished", then a damaged or missing evaluation.
     """
     opened = open_run_files(directory, run.config)
     if isinstance(opened, str):
@@ -199,14 +201,19 @@ def _remove_staging(archive: Path, runs: Sequence[StudyRun], root: Path) -> None
 
 # ------------------------------------------------------------------ archive and restore
 def archive_study(
-    spec: StudySpec, root: str | Path, archive: str | Path, runs: Sequence[StudyRun], checkpoints: bool = False
+    spec: StudySpec,
+    root: str | Path,
+    archive: str | Path,
+    runs: Sequence[StudyRun],
+    checkpoints: bool = False,
+    drop_unplanned: bool = False,
 ) -> ArchiveResult:
     """Copy every finished run of ``runs`` (``spec``'s, planned in ``root``), and its registration, into ``archive``.
 
-    ``checkpoints``: also carry every interrupted run with its checkpoint (:func:`~.carry.carry_run`), and
-    remove the carried copies of runs not in ``runs``, which must then be the spec's whole plan: those are
-    runs the spec no longer plans (:func:`~.carry.unplanned_carried`). A finished run archived (now or
-    before) loses its interrupted copy.
+    ``checkpoints``: also carry every interrupted run with its checkpoint (:func:`~.carry.carry_run`). A
+    finished run archived (now or before) loses its interrupted copy. ``drop_unplanned`` (``runs`` is then
+    the spec's whole plan): remove the carried copies of runs not in ``runs``, which the spec no longer plans
+    (:func:`~.carry.unplanned_carried`).
 
     Safe while the study runs: a run counts only when finished and held by no process. Everything is checked
     before anything is copied: the run directory's registration (it must be there, of this study, and of the
@@ -281,8 +288,8 @@ def archive_study(
                 result.carried.append(rel)
             elif done != "kept":
                 result.passed.append(f"{rel}: its checkpoint is {done}")
-        if checkpoints:  # copies of runs the spec no longer plans: nothing would ever restore them
-            planned = {str(r.path.relative_to(root)) for r in runs}
+        if drop_unplanned:  # copies of runs the spec no longer plans: nothing would ever restore them
+            planned = {r.path.relative_to(root).as_posix() for r in runs}
             for rel in unplanned_carried(archive, planned):
                 drop_carried(archive, rel)
                 result.dropped.append(rel)

@@ -307,18 +307,28 @@ def restore_carried(archive: Path, rel: str, target: Path, checkpoint: bytes | N
 def unplanned_carried(archive: Path, planned: set[str]) -> list[str]:
     """The carried copies in ``archive`` (paths relative to the study) of runs not in ``planned``, sorted.
 
-    A copy is a folder below :data:`INTERRUPTED` that holds a :data:`MANIFEST`; links are not followed. Such a
-    copy is left by a run its spec no longer plans (a pending spec edited between two sessions): nothing
-    would ever restore it.
+    A copy is a folder below :data:`INTERRUPTED`, as deep as the planned runs' paths, that holds a regular
+    :data:`MANIFEST`. Not followed or counted: links, hidden folders (a killed carry's staging, which
+    :func:`recover_carried` tidies), :data:`INTERRUPTED` itself and any folder on the way to a planned run.
+    Such a copy is left by a run its spec no longer plans (a pending spec edited between two sessions):
+    nothing would ever restore it.
     """
-    if check_below(archive, INTERRUPTED, "directory") is None:
+    if not planned or check_below(archive, INTERRUPTED, "directory") is None:
         return []
+    depths = {len(Path(rel).parts) for rel in planned}
+    on_the_way = {Path(*Path(rel).parts[:n]).as_posix() for rel in planned for n in range(1, len(Path(rel).parts))}
     top = archive / INTERRUPTED
     found = []
-    for folder, dirs, files in os.walk(top):  # os.walk follows no link to a directory
-        if MANIFEST in files:
-            rel = Path(folder).relative_to(top).as_posix()
-            if rel not in planned:
-                found.append(rel)
-            dirs.clear()
+    for folder, dirs, _files in os.walk(top):  # os.walk follows no link to a directory
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+        rel = Path(folder).relative_to(top)
+        if len(rel.parts) not in depths or rel.as_posix() in planned or rel.as_posix() in on_the_way:
+            continue
+        dirs.clear()
+        try:
+            manifest = check_below(top, rel / MANIFEST)
+        except ValueError:  # a link or a special file there: no copy pimbrl wrote
+            continue
+        if manifest is not None:
+            found.append(rel.as_posix())
     return sorted(found)
