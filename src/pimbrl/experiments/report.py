@@ -601,7 +601,7 @@ def _provenance_lines(spec: StudySpec, record: dict[str, Any], label: str, why: 
     copied = f" ({copies} copied from a seed-free controller's first seed, checked against its second)" if copies else ""
     moved = sum(1 for r in record["runs"] if r.get("resumed_on"))
     if moved:  # bit for bit on one CPU model, not across two: say how many runs went on elsewhere
-        copied += f" ({moved} resumed on another CPU or commit than they began on; the lists name both)"
+        copied += f" ({moved} resumed on another CPU or commit than they began on, the lists naming both)"
     lines.append(f"- **Runs**: {len(record['runs'])}{copied}; CPU: {cpu}; commit: {commit}.")
     protocols = {p for arm in spec.arms for p in setting_values(arm, spec.overrides, spec.grid, "eval_protocol", "test")}
     if protocols != {"test"}:
