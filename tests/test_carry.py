@@ -194,6 +194,7 @@ def test_an_interrupted_controller_is_carried_with_its_saved_chunks_and_finishes
     assert again["runs"][0]["final_return"] == pytest.approx(whole["runs"][0]["final_return"], abs=1e-9)
 
 
+@pytest.mark.slow  # two short DPC runs on Pendulum
 def test_an_interrupted_dpc_run_is_carried_with_its_checkpoint_and_finishes_as_if_never_stopped(tmp_path, monkeypatch) -> None:
     from pimbrl.control.dpc import DPCTrainer
 
@@ -272,3 +273,15 @@ def test_a_carried_copy_of_a_run_the_spec_no_longer_plans_is_removed_and_said(tm
         == 0
     )
     assert not stale.exists() and (top / RUN / CHECKPOINT).is_file()
+
+
+@pytest.mark.slow  # one short Burgers run
+def test_a_run_resumed_after_its_last_evaluation_still_reports_its_inference_cost(tmp_path) -> None:
+    spec = _spec(tmp_path, total_steps=120)
+    root = tmp_path / "runs"
+    runs = plan_study(spec, root)
+    train(create_run(runs[0].config, runs[0].path, progress=False))
+    cost = RunDirectory(runs[0].path).load_checkpoint()["inference_s_per_step"]
+    assert isinstance(cost, float) and cost > 0
+    again = open_run(runs[0].path, progress=False)  # a fresh process, as a resume after the last evaluation is
+    assert again.inference_s_per_step == cost

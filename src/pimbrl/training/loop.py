@@ -199,6 +199,7 @@ class Run:
             "logger": self.logger.state_dict(),
             "schedule": self.schedule.state_dict(),
             "torch_rng": torch.get_rng_state(),
+            "inference_s_per_step": self.inference_s_per_step,  # of the last evaluation: a resume after it reports it
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -213,6 +214,8 @@ class Run:
         self.logger.load_state_dict(state["logger"])
         self.schedule.load_state_dict(state["schedule"])
         torch.set_rng_state(state["torch_rng"])
+        cost = state.get("inference_s_per_step")  # absent from checkpoints written before it was kept
+        self.inference_s_per_step = float(cost) if isinstance(cost, (int, float)) else None
 
     def checkpoint_due(self) -> bool:
         """Whether ``checkpoint_every`` real steps or ``checkpoint_minutes`` of wall time passed since the last one."""
