@@ -156,6 +156,35 @@ def test_checkpoints_is_a_flag_of_study_archive_alone(tmp_path, capsys) -> None:
     assert capsys.readouterr().err.strip() == "pimbrl study: error: --checkpoints applies to study archive, not status"
 
 
+def _control_study(tmp_path: Path, method: str, overrides: dict) -> tuple:
+    """A one-run Pendulum study of ``method``: its spec, its uninterrupted record, and its first run directory
+    planned and registered (``root``) beside an archive path; returns ``(spec, whole, root, archive, runs)``."""
+    body = {"name": f"carry-{method}", "systems": ["pendulum"], "methods": {method: {"method": method}}, "seeds": [0]}
+    (tmp_path / "s.yaml").write_text(json.dumps({**body, "overrides": overrides}))
+    spec = load_spec(tmp_path / "s.yaml")
+    whole = run_study(spec, tmp_path / "whole", status=False, log=lambda m: None)
+    root, archive = tmp_path / "first", tmp_path / "archive"
+    runs = plan_study(spec, root)
+    start_study(spec, root, runs)
+    return spec, whole, root, archive, runs
+
+
+def _killed_in_call(monkeypatch, owner, name: str, at: int, run) -> None:
+    """Train ``run`` with ``owner.name`` raising KeyboardInterrupt at its ``at``-th call (a kill there); then unpatch."""
+    real, calls = getattr(owner, name), {"n": 0}
+
+    def dying(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == at:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, dying)
+    with pytest.raises(KeyboardInterrupt):
+        train(run)
+    monkeypatch.setattr(owner, name, real)
+
+
 @pytest.mark.slow  # two short MPC runs on Pendulum
 def test_an_interrupted_controller_is_carried_with_its_saved_chunks_and_finishes_as_if_never_stopped(
     tmp_path, monkeypatch
@@ -163,26 +192,9 @@ def test_an_interrupted_controller_is_carried_with_its_saved_chunks_and_finishes
     import pimbrl.training.control_run as control_run
 
     mpc = {"eval_episodes": 6, "model.horizon": 5, "model.iterations": 2, "model.first_iterations": 3, "model.batch": 2}
-    body = {"name": "carry-mpc", "systems": ["pendulum"], "methods": {"mpc": {"method": "mpc"}}, "seeds": [0], "overrides": mpc}
-    (tmp_path / "s.yaml").write_text(json.dumps(body))
-    spec = load_spec(tmp_path / "s.yaml")
-    whole = run_study(spec, tmp_path / "whole", status=False, log=lambda m: None)
-    root, archive = tmp_path / "first", tmp_path / "archive"
-    runs = plan_study(spec, root)
-    start_study(spec, root, runs)
-    real_play, calls = control_run.play, {"n": 0}
-
-    def dying(*args, **kwargs):  # killed in its second chunk of two test episodes
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise KeyboardInterrupt
-        return real_play(*args, **kwargs)
-
-    monkeypatch.setattr(control_run, "play", dying)
-    run = create_run(runs[0].config, runs[0].path, progress=False)
-    with pytest.raises(KeyboardInterrupt):
-        train(run)
-    monkeypatch.setattr(control_run, "play", real_play)
+    spec, whole, root, archive, runs = _control_study(tmp_path, "mpc", mpc)
+    # killed in its second chunk of two test episodes
+    _killed_in_call(monkeypatch, control_run, "play", 2, create_run(runs[0].config, runs[0].path, progress=False))
     rel = str(runs[0].path.relative_to(root))
     assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [rel]
     carried = archive / INTERRUPTED / rel
@@ -207,25 +219,9 @@ def test_an_interrupted_dpc_run_is_carried_with_its_checkpoint_and_finishes_as_i
         "model.hidden": [8],
         "model.validation_episodes": 2,
     }
-    body = {"name": "carry-dpc", "systems": ["pendulum"], "methods": {"dpc": {"method": "dpc"}}, "seeds": [0], "overrides": dpc}
-    (tmp_path / "s.yaml").write_text(json.dumps(body))
-    spec = load_spec(tmp_path / "s.yaml")
-    whole = run_study(spec, tmp_path / "whole", status=False, log=lambda m: None)
-    root, archive = tmp_path / "first", tmp_path / "archive"
-    runs = plan_study(spec, root)
-    start_study(spec, root, runs)
-    real_step, calls = DPCTrainer.step, {"n": 0}
-
-    def dying(self):  # killed in its fifth gradient step: the checkpoint of step 4 is the last one saved
-        calls["n"] += 1
-        if calls["n"] == 5:
-            raise KeyboardInterrupt
-        return real_step(self)
-
-    monkeypatch.setattr(DPCTrainer, "step", dying)
-    with pytest.raises(KeyboardInterrupt):
-        train(create_run(runs[0].config, runs[0].path, progress=False))
-    monkeypatch.setattr(DPCTrainer, "step", real_step)
+    spec, whole, root, archive, runs = _control_study(tmp_path, "dpc", dpc)
+    # killed in its fifth gradient step: the checkpoint of step 4 is the last one saved
+    _killed_in_call(monkeypatch, DPCTrainer, "step", 5, create_run(runs[0].config, runs[0].path, progress=False))
     rel = str(runs[0].path.relative_to(root))
     assert archive_study(spec, root, archive, runs, checkpoints=True).carried == [rel]
     manifest = json.loads((archive / INTERRUPTED / rel / "carried.json").read_text())
